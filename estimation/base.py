@@ -1,0 +1,61 @@
+"""The shape every estimator has, shared by both drivers.
+
+An estimator is an object with explicit, inspectable state and a ``step`` (filterpy's
+``predict/update`` style)::
+
+    est = SomeEstimator(...)                 # built once from the scenario (validated)
+    out = est.step(k, measurement, inbox)    # one round
+    est.estimate                             # current x_hat, shape (n,)
+
+Conventions (both drivers rely on them):
+
+* Round ``k`` corresponds to time ``t_k = k * dt``. The message an agent publishes in
+  round ``k`` carries its estimate of ``x[k]`` and is stamped ``k``.
+* ``measurement`` is what the agent's sensing location(s) read in round ``k``
+  (``y[k]``, a 1-D float array), or ``None`` when the agent is at no location this
+  round (a mobile agent commuting) -- missing data is ordinary input.
+* ``inbox`` maps an in-neighbour id to the newest :class:`Received` message the channel
+  delivered by round ``k``; it may be empty (all dropped). Messages published in round
+  ``k - 1`` are the freshest an agent can have in round ``k``.
+* ``step`` returns the outgoing payload (a float array) stamped ``k``. An estimator never
+  mutates the arrays it receives and never hands out its internal arrays.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping, NamedTuple, Protocol, runtime_checkable
+
+import numpy as np
+
+
+class Received(NamedTuple):
+    """A neighbour's message as delivered to a receiver.
+
+    Attributes
+    ----------
+    sender : int
+        The neighbour's agent id.
+    stamp : int
+        The round in which the sender published it.
+    value : (d,) float array
+        The payload (usually the sender's estimate). Treat as read-only.
+    """
+
+    sender: int
+    stamp: int
+    value: np.ndarray
+
+
+Inbox = Mapping[int, Received]
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """Protocol of a per-agent estimator (see the module docstring)."""
+
+    @property
+    def estimate(self) -> np.ndarray:  # (n,) copy of the current estimate
+        ...
+
+    def step(self, k: int, measurement: np.ndarray | None, inbox: Inbox) -> np.ndarray:
+        ...
