@@ -284,27 +284,58 @@ class LeeKimShim:
         # z+ = Phi_o z + W_i Bd u + L_d (y - C V_i z) with Phi_o = expm(W_i A V_i dt) and
         # L_d placing the eigenvalues of Phi_o - L_d C V_i at exp(p dt) for the
         # continuous design's poles p, so the error dynamics match (5)'s at the samples.
+        p = B.shape[1]
+        m = ob.C.shape[0]
         if o:
             A_o = ob.W_i @ A @ ob.V_i
             C_o = ob.C @ ob.V_i
             Phi_o, _ = zoh_integral(A_o, dt)
-            self._Phi_o, self._Gou = Phi_o, ob.W_i @ Bd
-            self._Ld = discrete_gain(Phi_o, C_o, np.exp(ob.poles * dt), agent=agent)
-            self._Phi_z = Phi_o - self._Ld @ C_o
+            Gou = ob.W_i @ Bd
+            Ld = discrete_gain(Phi_o, C_o, np.exp(ob.poles * dt), agent=agent)
+            Phi_z = Phi_o - Ld @ C_o
+        else:
+            Phi_o = Phi_z = np.zeros((0, 0))
+            Gou, Ld = np.zeros((0, p)), np.zeros((0, m))
         self._o = o
+        # One matrix per neighbour count d, acting on v = [x; z; sum_j x_j; u; y]:
+        #   [x+; z+]_free = M_d v      (free motion: model, consensus, partial observer)
+        # and, without a measurement, on v = [x; z; sum_j x_j; u] (observer runs open loop).
+        self._M, self._M_open = [], []
+        for d in range(max_degree + 1):
+            M = np.zeros((n + o, 2 * n + o + p + m))
+            M[:n, :n] = self._stay[d] * self._Ad
+            M[:n, n + o : 2 * n + o] = self._alpha[d] * self._Ad
+            M[:n, 2 * n + o : 2 * n + o + p] = Bd
+            M[n:, n : n + o] = Phi_z
+            M[n:, 2 * n + o : 2 * n + o + p] = Gou
+            M[n:, 2 * n + o + p :] = Ld
+            Mo = M[:, : 2 * n + o + p].copy()
+            Mo[n:, n : n + o] = Phi_o
+            self._M.append(M)
+            self._M_open.append(Mo)
+        # the sliding variables inner = E z - F x as one matrix on [x; z]
+        E = np.eye(o) if self._E is None else self._E
+        self._H = np.hstack([-self._F, E]) if o else np.zeros((0, n))
+        self._inv_band = [1.0 / b for b in self._band]
+        self._s = np.concatenate([self._xh, self._z])
+        self._zero_n = np.zeros(n)
+        del self._xh, self._z
 
     @property
     def estimate(self) -> np.ndarray:
         """Current ``x_hat_i`` (copy), shape ``(n,)``."""
-        return self._xh.copy()
+        return self._s[: self.n].copy()
 
     @property
     def partial_estimate(self) -> np.ndarray:
         """Current ``z_i`` (copy), shape ``(o_i,)``."""
-        return self._z.copy()
+        return self._s[self.n :].copy()
 
     def step(self, k: int, measurement: np.ndarray | None, inbox: Inbox) -> np.ndarray:
-        """Advance to round ``k`` and return ``x_hat_i[k]`` (see the module docstring)."""
+        """Advance to round ``k`` and return ``x_hat_i[k]`` (see the module docstring).
+
+        The returned array is read-only and never modified afterwards.
+        """
         if self._k is not None:
             oldest = k - 1 - self.max_age
             nb = [r.value for r in inbox.values() if r.stamp >= oldest]
@@ -312,35 +343,32 @@ class LeeKimShim:
                 self._advance(kk, nb)
         self._k = k
         self._y = None if measurement is None else np.asarray(measurement, dtype=float)
-        return self._xh.copy()
+        out = self._s[: self.n]
+        return out
 
     def _advance(self, kk: int, nb: list[np.ndarray]) -> None:
         u = self._u(kk * self.dt)
         d = len(nb)
-        x, z = self._xh, self._z
-        if d:
+        if d == 0:
+            total = self._zero_n
+        else:
             total = nb[0]
             for v in nb[1:]:
                 total = total + v
-            mix = self._stay[d] * x + self._alpha[d] * total
-        else:
-            mix = x
-        xn = self._Ad @ mix + self._Bd @ u  # free motion: model + consensus
-        if not self._o:
-            self._xh = xn
-            return
+        s = self._s
         if self._y is not None:
-            zn = self._Phi_z @ z + self._Gou @ u + self._Ld @ self._y
+            sn = self._M[d] @ np.concatenate((s, total, u, self._y))
         else:
-            zn = self._Phi_o @ z + self._Gou @ u
-        if self._linear:
-            inner = z - self._F @ x if self._E is None else self._E @ z - self._F @ x
-            phi = inner
-        elif self._implicit:
-            inner = zn - self._F @ xn if self._E is None else self._E @ zn - self._F @ xn
-            phi = np.clip(inner / self._band[d], -1.0, 1.0)
-        else:
-            inner = z - self._F @ x if self._E is None else self._E @ z - self._F @ x
-            phi = np.sign(inner)
-        self._xh = xn + self._Gs[d] @ phi
-        self._z = zn
+            sn = self._M_open[d] @ np.concatenate((s, total, u))
+        if self._o:
+            if self._linear:
+                phi = self._H @ s
+            elif self._implicit:  # sgn evaluated implicitly at the end of the step
+                phi = self._H @ sn
+                phi *= self._inv_band[d]
+                np.clip(phi, -1.0, 1.0, out=phi)
+            else:
+                phi = np.sign(self._H @ s)
+            sn[: self.n] += self._Gs[d] @ phi
+        sn.flags.writeable = False
+        self._s = sn

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -20,6 +20,7 @@ class Signal:
     amplitude: np.ndarray
     omega: np.ndarray
     phase: np.ndarray
+    _last: list = field(default_factory=lambda: [None, None], repr=False, compare=False)
 
     @classmethod
     def zero(cls, p: int) -> "Signal":
@@ -37,8 +38,15 @@ class Signal:
         return cls("constant", p, np.broadcast_to(np.asarray(value, float), (p,)).copy(), z, z, z)
 
     def __call__(self, t: float) -> np.ndarray:
-        if self.kind == "zero":
-            return self.offset.copy()
-        if self.kind == "constant":
-            return self.offset.copy()
-        return self.offset + self.amplitude * np.sin(self.omega * t + self.phase)
+        """``u(t)``, shape ``(p,)``, read-only (the last value is cached: every agent of a
+        round asks for the same ``t``)."""
+        last = self._last
+        if last[0] == t:
+            return last[1]
+        if self.kind in ("zero", "constant"):
+            u = self.offset.copy()
+        else:
+            u = self.offset + self.amplitude * np.sin(self.omega * t + self.phase)
+        u.flags.writeable = False
+        last[0], last[1] = t, u
+        return u

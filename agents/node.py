@@ -1,0 +1,74 @@
+"""The round logic of one agent, shared by both drivers (DESIGN.md, "One round").
+
+An :class:`AgentNode` owns its estimator, its receiver-side view of the channel and its
+inbox. A driver hands it every message that physically reaches it (:meth:`receive`) and
+calls :meth:`run_round` once per round; the node makes messages visible in the round the
+channel model says (:class:`transport.channel.Channel`), keeps the newest message of each
+in-neighbour, steps the estimator and returns the outgoing payload stamped ``k``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from estimation.base import Received
+from transport.channel import Channel, LinkCounters
+
+
+class AgentNode:
+    """One agent's round logic.
+
+    Parameters
+    ----------
+    agent_id : int  the 1-based id used on the network and in outputs
+    estimator : an :class:`estimation.base.Estimator`
+    channel : the shared :class:`Channel` model
+    in_neighbours : ids this agent accepts estimates from (others are rejected, counted)
+    """
+
+    def __init__(self, agent_id: int, estimator: Any, channel: Channel, in_neighbours: list[int]) -> None:
+        self.id = agent_id
+        self.estimator = estimator
+        self.channel = channel
+        self.inbox: dict[int, Received] = {}
+        self._pending: dict[int, list[Received]] = {}
+        self.links: dict[int, LinkCounters] = {j: LinkCounters() for j in in_neighbours}
+        self.round: int | None = None
+        self._perfect = channel.perfect
+
+    def receive(self, sender: int, stamp: int, value: np.ndarray) -> None:
+        """A message from ``sender`` stamped ``stamp`` reached this agent."""
+        c = self.links.get(sender)
+        if c is None:  # not an in-neighbour: not ours to use
+            return
+        c.sent += 1
+        when = stamp + 1 if self._perfect else self.channel.fate(sender, self.id, stamp)
+        if when is None:
+            c.dropped += 1
+            return
+        c.delivered += 1
+        if when > stamp + 1:
+            c.late += 1
+        self._pending.setdefault(when, []).append(Received(sender, stamp, value))
+
+    def reject(self, sender: int) -> None:
+        """Count a message from ``sender`` that failed validation."""
+        c = self.links.get(sender)
+        if c is not None:
+            c.rejected += 1
+
+    def _release(self, k: int) -> None:
+        for when in [w for w in self._pending if w <= k]:
+            for r in self._pending.pop(when):
+                old = self.inbox.get(r.sender)
+                if old is None or r.stamp > old.stamp:
+                    self.inbox[r.sender] = r
+
+    def run_round(self, k: int, measurement: np.ndarray | None) -> np.ndarray:
+        """Run round ``k``; returns the outgoing payload (the estimate of ``x[k]``)."""
+        if self._pending:
+            self._release(k)
+        self.round = k
+        return self.estimator.step(k, measurement, self.inbox)

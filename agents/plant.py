@@ -1,0 +1,40 @@
+"""The plant role: advances the true state and serves the sensing locations.
+
+Round ``k``: ``x[k]`` is the state at ``t_k = k dt``; :meth:`measure` returns the stacked
+``y[k] = C x[k] + a(t_k)`` with the sensor attacks applied; :meth:`advance` moves to
+``x[k+1] = Ad x[k] + Bd u(t_k)`` (exact zero-order hold, :func:`estimation.lti.zoh`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scenarios.build import Experiment
+
+
+class PlantRole:
+    def __init__(self, exp: Experiment) -> None:
+        self.exp = exp
+        self.x = exp.x0.copy()
+        self._C = exp.plant.C
+        self._Ad, self._Bd = exp.Ad, exp.Bd
+        self._input = exp.input
+        self._attacks = exp.sensor_attacks
+        self.k = 0
+
+    @property
+    def truth(self) -> np.ndarray:
+        return self.x.copy()
+
+    def measure(self, k: int) -> np.ndarray:
+        t = k * self.exp.dt
+        y = self._C @ self.x
+        for a in self._attacks:
+            if a.active(t):
+                y[a.rows] += a.value_at(t)
+        return y
+
+    def advance(self, k: int) -> None:
+        u = self._input(k * self.exp.dt)
+        self.x = self._Ad @ self.x + self._Bd @ u
+        self.k = k + 1

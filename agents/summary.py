@@ -1,0 +1,132 @@
+"""Summaries of a run and the scenario's ``[[expect]]`` bounds.
+
+``summary.json`` holds, per agent and state block, the final errors, the maximum errors
+over the output window and the convergence round (the first round from which the error
+stays below ``[output] convergence_threshold``: ``error_inf`` for bounded plants, checked
+on ``relative_error_2`` when the block's true state grows past 1e3), plus the same for the
+worst regular agent, link counters and the expectations with their measured values.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from scenarios.build import Experiment
+from scenarios.schema import Expectation
+
+from .monitor import METRICS, Monitor
+
+
+def _nanmax(a: np.ndarray) -> float:
+    a = np.asarray(a, dtype=float)
+    if a.size == 0 or np.all(np.isnan(a)):
+        return math.nan
+    return float(np.nanmax(a))
+
+
+def _rounds(exp: Experiment, over: Any, last: int) -> np.ndarray:
+    t = np.arange(last + 1) * exp.dt
+    if over == "final":
+        return np.array([last])
+    t0, t1 = exp.window if over == "window" else over
+    eps = 1e-9 * max(1.0, abs(t1))
+    return np.flatnonzero((t >= t0 - eps) & (t <= t1 + eps))
+
+
+def convergence_round(err: np.ndarray, threshold: float) -> int | None:
+    """First round from which ``err`` (per round) stays <= threshold (None if never)."""
+    bad = ~(err <= threshold)  # NaN counts as not converged
+    if not bad.any():
+        return 0
+    last_bad = int(np.flatnonzero(bad)[-1])
+    return None if last_bad == len(err) - 1 else last_bad + 1
+
+
+@dataclass
+class ExpectationResult:
+    label: str
+    value: float
+    max: float | None
+    min: float | None
+    ok: bool
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"label": self.label, "value": self.value, "max": self.max, "min": self.min, "ok": self.ok}
+
+
+def describe(e: Expectation) -> str:
+    if e.label:
+        return e.label
+    who = "worst regular agent" if e.agents == "regular" else f"worst of agents {e.agents}"
+    over = e.over if isinstance(e.over, str) else f"t in [{e.over[0]:g}, {e.over[1]:g}]"
+    block = "any block" if e.block == "all" else f"block {e.block}"
+    return f"max {e.metric} ({who}, {block}, {over})"
+
+
+def evaluate(exp: Experiment, mon: Monitor, regular: np.ndarray) -> list[ExpectationResult]:
+    last = mon.last_round
+    out = []
+    for e in exp.scenario.expect:
+        data = mon.metric(e.metric)[: last + 1]
+        rounds = _rounds(exp, e.over, last)
+        if e.agents == "regular":
+            cols = np.flatnonzero(regular)
+        else:
+            cols = np.array([exp.agent_ids.index(a) for a in e.agents])
+        bcols = np.arange(len(mon.block_names)) if e.block == "all" else np.array([mon.block_names.index(e.block)])
+        sel = data[np.ix_(rounds, cols, bcols)]
+        value = _nanmax(sel)
+        ok = not math.isnan(value)
+        if e.max is not None:
+            ok = ok and value <= e.max
+        if e.min is not None:
+            ok = ok and value >= e.min
+        out.append(ExpectationResult(describe(e), value, e.max, e.min, ok))
+    return out
+
+
+def summarise(exp: Experiment, mon: Monitor, regular: np.ndarray, links: dict[str, dict[str, int]],
+              rejected: dict[str, dict[str, int]] | None = None) -> dict[str, Any]:
+    last = mon.last_round
+    win = _rounds(exp, "window", last)
+    thr = exp.scenario.output.convergence_threshold
+    agents: dict[str, Any] = {}
+    for i, aid in enumerate(exp.agent_ids):
+        blocks = {}
+        for b, name in enumerate(mon.block_names):
+            rec: dict[str, Any] = {}
+            for m in METRICS:
+                series = mon.metric(m)[: last + 1, i, b]
+                rec[f"final_{m}"] = float(series[last])
+                rec[f"window_max_{m}"] = _nanmax(series[win])
+            grows = _nanmax(mon.truth_norm[: last + 1, b]) > 1e3
+            conv_metric = "relative_error_2" if grows else "error_inf"
+            rec["convergence_round"] = convergence_round(mon.metric(conv_metric)[: last + 1, i, b], thr)
+            blocks[name] = rec
+        agents[str(aid)] = {"regular": bool(regular[i]), "blocks": blocks}
+    worst: dict[str, Any] = {}
+    reg_ids = [str(a) for a, r in zip(exp.agent_ids, regular) if r]
+    for name in mon.block_names:
+        rec = {}
+        for key in agents[reg_ids[0]]["blocks"][name] if reg_ids else []:
+            vals = [agents[a]["blocks"][name][key] for a in reg_ids]
+            if key == "convergence_round":
+                rec[key] = None if any(v is None for v in vals) else max(vals)
+            else:
+                rec[key] = _nanmax(np.array(vals, dtype=float))
+        worst[name] = rec
+    return {
+        "scenario": exp.scenario.run.name,
+        "rounds": last,
+        "t_final": last * exp.dt,
+        "window": list(exp.window),
+        "convergence_threshold": thr,
+        "agents": agents,
+        "worst_regular": worst,
+        "links": links,
+        "rejected": rejected or {},
+    }

@@ -1,0 +1,224 @@
+"""The scenario file format (TOML), as pydantic models.
+
+Every table forbids unknown keys. The loader (:mod:`scenarios.loader`) turns validation
+errors into messages that name the file, the key path, what was expected and what was
+found. The README's "Scenario files" section documents every key; keep them in sync.
+
+Ids in scenario files are 1-based (sensor banks / locations, agents), as in the papers.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+Matrix = list[list[float]]
+Vector = list[float]
+
+
+# --------------------------------------------------------------------------- [run]
+class RunSection(Strict):
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    dt: float = Field(gt=0, description="round step in seconds")
+    duration: float | None = Field(default=None, gt=0, description="seconds; or give rounds")
+    rounds: int | None = Field(default=None, gt=0)
+    seed: int = Field(default=0, ge=0)
+
+    @model_validator(mode="after")
+    def _one_horizon(self) -> "RunSection":
+        if (self.duration is None) == (self.rounds is None):
+            raise ValueError("give exactly one of 'duration' (seconds) or 'rounds'")
+        return self
+
+    @property
+    def n_rounds(self) -> int:
+        """Number of steps; rounds 0..n_rounds are simulated."""
+        if self.rounds is not None:
+            return self.rounds
+        return int(round(self.duration / self.dt))
+
+
+# --------------------------------------------------------------------------- [plant]
+class InputSignal(Strict):
+    kind: Literal["zero", "constant", "sine"] = "zero"
+    amplitude: float = 0.0
+    omega: float = 0.0
+    phase: float = 0.0
+    offset: float = 0.0
+
+
+class UniformInit(Strict):
+    kind: Literal["uniform"] = "uniform"
+    low: float = -1.0
+    high: float = 1.0
+
+    @model_validator(mode="after")
+    def _order(self) -> "UniformInit":
+        if not self.low <= self.high:
+            raise ValueError(f"low must be <= high, got low={self.low}, high={self.high}")
+        return self
+
+
+class ValueInit(Strict):
+    kind: Literal["value"] = "value"
+    value: Vector
+
+
+class ZeroInit(Strict):
+    kind: Literal["zero"] = "zero"
+
+
+Init = Annotated[Union[UniformInit, ValueInit, ZeroInit], Field(discriminator="kind")]
+
+
+class PlantSection(Strict):
+    model: Literal["three_inertia", "lti"]
+    #: named-model parameters (e.g. J, b, k for three_inertia)
+    params: dict[str, float] = Field(default_factory=dict)
+    #: explicit matrices for model = "lti" (continuous time: x' = A x + B u)
+    A: Matrix | None = None
+    B: Matrix | None = None
+    state_names: list[str] | None = None
+    input: InputSignal = Field(default_factory=InputSignal)
+    x0: Init = Field(default_factory=UniformInit)
+    #: named blocks of the state, 1-based state indices, for per-block metrics
+    blocks: dict[str, list[int]] = Field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- [[sensors]]
+class SensorBank(Strict):
+    name: str | None = None
+    C: Matrix
+    position: tuple[float, float] | None = None
+
+
+# --------------------------------------------------------------------------- [[agents]]
+class AgentSpec(Strict):
+    id: int | None = Field(default=None, ge=1)
+    sensors: list[int] = Field(min_length=1, description="1-based sensor bank ids")
+
+
+# --------------------------------------------------------------------------- [network]
+class RingGraph(Strict):
+    kind: Literal["ring"]
+    directed: bool = False
+
+
+class CompleteGraph(Strict):
+    kind: Literal["complete"]
+
+
+class EdgesGraph(Strict):
+    kind: Literal["edges"]
+    edges: list[tuple[int, int]] = Field(description="1-based agent id pairs (from, to)")
+    directed: bool = False
+
+
+Graph = Annotated[Union[RingGraph, CompleteGraph, EdgesGraph], Field(discriminator="kind")]
+
+
+class LossWindow(Strict):
+    rounds: tuple[int, int] = Field(description="[first, last] round, inclusive")
+    links: list[tuple[int, int]] = Field(description="(from, to) agent id pairs that drop everything")
+
+
+class ChannelSection(Strict):
+    drop_p: float = Field(default=0.0, ge=0.0, lt=1.0, description="Bernoulli erasure per link per round")
+    delay_max: int = Field(default=0, ge=0, description="uniform random delay in rounds, 0..delay_max")
+    losses: list[LossWindow] = Field(default_factory=list)
+
+
+class NetworkSection(Strict):
+    graph: Graph
+    channel: ChannelSection = Field(default_factory=ChannelSection)
+
+
+# --------------------------------------------------------------------------- [estimator]
+class ObserverPoles(Strict):
+    real_part: float = Field(default=-1.0, lt=0)
+
+
+class LeeKimShimEstimator(Strict):
+    algorithm: Literal["lee_kim_shim"]
+    variant: Literal["median", "lyapunov", "linear"] = "median"
+    kappa: float = Field(gt=0)
+    gamma: float = Field(gt=0)
+    q: int = Field(default=1, ge=0, description="number of attacked sensor banks tolerated")
+    observer: ObserverPoles = Field(default_factory=ObserverPoles)
+    sign: Literal["implicit", "held"] = "implicit"
+    max_age: int = Field(default=3, ge=0)
+    x0: Init = Field(default_factory=UniformInit)
+
+
+Estimator = Annotated[Union[LeeKimShimEstimator], Field(discriminator="algorithm")]
+
+
+# --------------------------------------------------------------------------- [[attacks]]
+class SensorAttack(Strict):
+    target: Literal["sensor"]
+    sensors: list[int] = Field(min_length=1, description="1-based sensor bank ids")
+    kind: Literal["constant", "ramp", "sine", "random"]
+    start: float = 0.0
+    stop: float = math.inf
+    value: float = 0.0
+    slope: float = 0.0
+    amplitude: float = 0.0
+    omega: float = 0.0
+    phase: float = 0.0
+    scale: float = 0.0
+
+    @model_validator(mode="after")
+    def _window(self) -> "SensorAttack":
+        if not self.start < self.stop:
+            raise ValueError(f"start must be < stop, got start={self.start}, stop={self.stop}")
+        return self
+
+
+Attack = Annotated[Union[SensorAttack], Field(discriminator="target")]
+
+
+# --------------------------------------------------------------------------- [output] / [[expect]]
+class OutputSection(Strict):
+    window: tuple[float, float] | None = Field(default=None, description="[t0, t1] seconds")
+    convergence_threshold: float = Field(default=1e-2, gt=0)
+
+
+class Expectation(Strict):
+    metric: Literal["error_2", "error_inf", "relative_error_2"]
+    block: str = "x"
+    agents: Literal["regular"] | list[int] = "regular"
+    over: Literal["window", "final"] | tuple[float, float] = "window"
+    max: float | None = None
+    min: float | None = None
+    label: str | None = None
+
+    @model_validator(mode="after")
+    def _bound(self) -> "Expectation":
+        if self.max is None and self.min is None:
+            raise ValueError("give 'max' and/or 'min'")
+        return self
+
+
+# --------------------------------------------------------------------------- whole file
+class Scenario(Strict):
+    run: RunSection
+    plant: PlantSection
+    sensors: list[SensorBank] | None = None
+    agents: list[AgentSpec] | None = None
+    network: NetworkSection
+    estimator: Estimator
+    attacks: list[Attack] = Field(default_factory=list)
+    output: OutputSection = Field(default_factory=OutputSection)
+    expect: list[Expectation] = Field(default_factory=list)
+
+    @field_validator("expect")
+    @classmethod
+    def _labels(cls, v: list[Expectation]) -> list[Expectation]:
+        return v
