@@ -1,0 +1,194 @@
+"""Modal coordinates of a plant with real, distinct eigenvalues.
+
+Mitra, Richards, Bagchi, Sundaram, "Resilient distributed state estimation with mobile
+agents" (Autonomous Robots 2019), Section 3.1, eq. (4). Under Assumption 1 (``A`` has
+real, distinct eigenvalues) a real similarity transformation diagonalises the plant::
+
+    z[k] = W x[k],   x[k] = V z[k],   W A V = diag(lambda_1, ..., lambda_n).
+
+Naming: the paper writes ``z = V x``; here ``V`` holds the eigenvectors as columns
+(``x_hat = V @ z_hat``) and ``W = V^{-1}`` is the paper's ``V``.
+
+Decoupled blocks. Plants made of decoupled sub-plants (the cells of Section 8) repeat the
+same eigenvalues in every cell, so the global ``A`` violates Assumption 1 although each
+cell satisfies it. The decomposition is therefore computed block by block: the blocks are
+the connected components of the sparsity pattern of ``A`` (or given explicitly), and the
+eigenvalues must be real and distinct *within* each block. The block-wise eigenbasis still
+diagonalises ``A`` and every measurement column keeps its meaning per mode; whether modes
+seen together by one sensing location are distinguishable is checked where it matters, in
+the observer design (:mod:`estimation.switched_observer`).
+
+Normalisation: symmetric blocks use ``eigh`` (orthonormal eigenvectors); other blocks
+use ``eig`` with unit 2-norm columns. The largest-magnitude entry of every eigenvector is
+made positive. Within a block the modes are ordered by decreasing eigenvalue; blocks
+appear in the order of their smallest state index, so a diagonal ``A`` keeps its state
+order (``V = I``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy.sparse.csgraph import connected_components
+
+from .errors import DesignError
+
+#: relative tolerance for "real" and "distinct" eigenvalues
+EIG_TOL = 1e-9
+#: largest condition number accepted for one block's eigenvector matrix
+MAX_COND = 1e12
+
+
+@dataclass(frozen=True, eq=False)
+class ModalForm:
+    """The modal decomposition of eq. (4).
+
+    Attributes
+    ----------
+    lam : (n,) float array
+        Eigenvalue of each mode (modal coordinate).
+    V : (n, n) float array
+        Eigenvectors as columns: ``x = V z``.
+    W : (n, n) float array
+        ``V^{-1}``: ``z = W x`` (the paper's ``V``).
+    block_of_mode : (n,) int array
+        Index of the decoupled block each mode belongs to.
+    blocks : tuple of (n_b,) int arrays
+        State indices of each block.
+    """
+
+    lam: np.ndarray
+    V: np.ndarray
+    W: np.ndarray
+    block_of_mode: np.ndarray
+    blocks: tuple[np.ndarray, ...]
+
+    @property
+    def n(self) -> int:
+        return int(self.lam.shape[0])
+
+    @property
+    def spectral_radius(self) -> float:
+        """``rho(A)``, used by the MSS condition (23)."""
+        return float(np.max(np.abs(self.lam))) if self.n else 0.0
+
+    def to_modal(self, x: np.ndarray) -> np.ndarray:
+        """``z = W x`` for ``x`` of shape ``(..., n)`` (leading batch axes allowed)."""
+        return np.asarray(x, dtype=float) @ self.W.T
+
+    def to_state(self, z: np.ndarray) -> np.ndarray:
+        """``x = V z`` for ``z`` of shape ``(..., n)``."""
+        return np.asarray(z, dtype=float) @ self.V.T
+
+    def modal_rows(self, C: np.ndarray) -> np.ndarray:
+        """``C~ = C V`` of eq. (4): measurement rows ``(r, n)`` in modal coordinates."""
+        return np.atleast_2d(np.asarray(C, dtype=float)) @ self.V
+
+
+def decoupled_blocks(A: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Connected components of the sparsity pattern of ``A`` (exact zeros decouple).
+
+    Returns the components as sorted state-index arrays, ordered by smallest index.
+    """
+    A = np.asarray(A)
+    pattern = (A != 0) | (A.T != 0)
+    ncomp, labels = connected_components(pattern.astype(np.int8), directed=False)
+    comps = [np.flatnonzero(labels == c) for c in range(ncomp)]
+    return tuple(sorted(comps, key=lambda c: int(c[0])))
+
+
+def _block_eig(Ab: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
+    scale = max(1.0, float(np.max(np.abs(Ab)))) if Ab.size else 1.0
+    if np.array_equal(Ab, Ab.T):
+        lam, vec = np.linalg.eigh(Ab)
+    else:
+        lamc, vecc = np.linalg.eig(Ab)
+        bad = np.flatnonzero(np.abs(lamc.imag) > EIG_TOL * scale)
+        if bad.size:
+            raise DesignError(
+                f"{where}: A has complex eigenvalues {np.round(lamc[bad], 6).tolist()}; "
+                "Assumption 1 of Mitra et al. needs real, distinct eigenvalues"
+            )
+        lam = lamc.real
+        vec = np.real(vecc)
+        vec = vec / np.linalg.norm(vec, axis=0, keepdims=True)
+    order = np.argsort(-lam, kind="stable")
+    lam, vec = lam[order], vec[:, order]
+    if lam.size > 1:
+        gaps = -np.diff(lam)
+        j = int(np.argmin(gaps))
+        if gaps[j] <= EIG_TOL * scale:
+            raise DesignError(
+                f"{where}: A has a repeated eigenvalue {lam[j]:.12g} (gap {gaps[j]:.3g}); "
+                "Assumption 1 of Mitra et al. needs real, distinct eigenvalues within "
+                "each decoupled block"
+            )
+    cond = np.linalg.cond(vec) if lam.size else 1.0
+    if not np.isfinite(cond) or cond > MAX_COND:
+        raise DesignError(f"{where}: eigenvector matrix is ill-conditioned (cond {cond:.3g})")
+    idx = np.argmax(np.abs(vec), axis=0)
+    sign = np.sign(vec[idx, np.arange(vec.shape[1])])
+    sign[sign == 0] = 1.0
+    return lam, vec * sign
+
+
+def modal_form(A: np.ndarray, *, blocks: Sequence[Sequence[int]] | None = None) -> ModalForm:
+    """Modal coordinates of ``A`` (eq. (4)), computed per decoupled block.
+
+    Parameters
+    ----------
+    A : (n, n) array
+        The discrete-time system matrix of eq. (1).
+    blocks : sequence of index sequences, optional
+        A partition of ``0..n-1`` into decoupled blocks. ``A`` must have no entry
+        coupling two blocks. Default: the connected components of the sparsity pattern.
+
+    Returns
+    -------
+    ModalForm
+
+    Raises
+    ------
+    DesignError
+        ``A`` is not square/finite, ``blocks`` is not a decoupling partition, or a block
+        has complex or repeated eigenvalues (Assumption 1) or near-defective eigenvectors.
+    """
+    A = np.asarray(A, dtype=float)
+    if A.ndim != 2 or A.shape[0] != A.shape[1]:
+        raise DesignError(f"A must be square, got shape {A.shape}")
+    if not np.all(np.isfinite(A)):
+        raise DesignError("A has non-finite entries")
+    n = A.shape[0]
+    if blocks is None:
+        parts = decoupled_blocks(A)
+    else:
+        parts = tuple(np.asarray(sorted(int(i) for i in b), dtype=int) for b in blocks)
+        flat = np.concatenate(parts) if parts else np.zeros(0, dtype=int)
+        if flat.size != n or not np.array_equal(np.sort(flat), np.arange(n)):
+            raise DesignError(f"blocks must partition the {n} states exactly once each")
+        label = np.empty(n, dtype=int)
+        for b, idx in enumerate(parts):
+            label[idx] = b
+        rows, cols = np.nonzero(A)
+        cross = label[rows] != label[cols]
+        if np.any(cross):
+            r, c = int(rows[cross][0]), int(cols[cross][0])
+            raise DesignError(f"blocks are not decoupled: A[{r}, {c}] = {A[r, c]:.6g} couples block {label[r]} and block {label[c]}")
+    V = np.zeros((n, n))
+    W = np.zeros((n, n))
+    lam = np.zeros(n)
+    block_of_mode = np.zeros(n, dtype=int)
+    start = 0
+    for b, idx in enumerate(parts):
+        lb, vb = _block_eig(A[np.ix_(idx, idx)], where=f"block {b} (states {idx[0]}..{idx[-1]})")
+        modes = np.arange(start, start + idx.size)
+        lam[modes] = lb
+        V[np.ix_(idx, modes)] = vb
+        W[np.ix_(modes, idx)] = np.linalg.inv(vb)
+        block_of_mode[modes] = b
+        start += idx.size
+    for arr in (lam, V, W, block_of_mode):
+        arr.setflags(write=False)
+    return ModalForm(lam=lam, V=V, W=W, block_of_mode=block_of_mode, blocks=parts)
