@@ -15,8 +15,8 @@ estimator of constants; its forward-Euler form, with the step absorbed in the ga
     b~[k]   = b~[k-1] + k_I (L J~)[k-1]
     eta~[k] = k_P b~[k] + k_I (L J~)[k-1]
 
-(the signs of (10); (6) writes ``sum_j (eta_j - eta_i) = -(L eta)_i`` with the opposite
-sign, which is unstable). Back in plant coordinates, node ``i`` in round ``k`` with the
+(the signs of (10); (6), written with ``sum_j (J_j - J_i) = -(L J)_i``, is the same
+system with ``b`` and ``eta`` negated). Back in plant coordinates, node ``i`` in round ``k`` with the
 neighbours' values ``J_j, eta_j`` of round ``k-1`` computes::
 
     u_i = sum_j a_ij (J_i[k-1] - J_j[k-1]),   w_i = sum_j a_ij (eta_i[k-1] - eta_j[k-1])
@@ -211,7 +211,7 @@ def design_consensus_gains(Adj, *, max_spectral_radius: float = 1.0 - 1e-9) -> C
     starts = [np.array([G[t], KI[t], KP[t]]) for t in order[:4]]
     r_best, x = rho(starts[0]), starts[0]
     for x0 in starts:  # Nelder-Mead from the four best grid points
-        res = minimize(rho, np.array(x0), method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-12, "maxiter": 800})
+        res = minimize(rho, np.array(x0), method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-12, "maxfev": 500})
         if res.fun < r_best:
             r_best, x = float(res.fun), np.array(res.x)
     r = rho(x)
