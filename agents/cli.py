@@ -1,0 +1,178 @@
+"""The ``rse`` command line.
+
+Exit status: 0 success; 1 a condition (``rse check``) or the run itself failed;
+2 bad input (usage, scenario file, ``--set``); 3 the run finished but an ``[expect]``
+bound of the scenario failed; 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+import uuid
+from pathlib import Path
+from typing import Any, Callable
+
+import click
+
+from estimation.errors import ExpectationFailed, RSEError, ScenarioError
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_EXPECTATION, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+
+
+def _handle_errors(fn: Callable) -> Callable:
+    """Turn the runtime's own errors into a one-line message and an exit status."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from .console import error
+
+        try:
+            return fn(*args, **kwargs)
+        except ScenarioError as exc:
+            error(str(exc))
+            sys.exit(EXIT_BAD_INPUT)
+        except ExpectationFailed as exc:
+            error(str(exc))
+            sys.exit(EXIT_EXPECTATION)
+        except RSEError as exc:
+            error(str(exc))
+            sys.exit(EXIT_FAILED)
+        except KeyboardInterrupt:
+            error("interrupted")
+            sys.exit(EXIT_INTERRUPTED)
+        except OSError as exc:
+            error(f"{exc.strerror or exc}: {exc.filename}" if getattr(exc, "filename", None) else str(exc))
+            sys.exit(EXIT_FAILED)
+        except Exception as exc:  # a bug: say so plainly, traceback only on request
+            if os.environ.get("RSE_DEBUG"):
+                raise
+            error(f"internal error: {type(exc).__name__}: {exc} (set RSE_DEBUG=1 for the traceback)")
+            sys.exit(EXIT_FAILED)
+
+    return wrapper
+
+
+def scenario_options(fn: Callable) -> Callable:
+    """The flags every scenario-taking sub-command shares."""
+    fn = click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE",
+                      help="Override any scenario key (TOML value), e.g. --set estimator.kappa=5. Repeatable.")(fn)
+    fn = click.option("--seed", type=click.IntRange(min=0), default=None, help="Override run.seed.")(fn)
+    fn = click.argument("scenario", type=click.Path(dir_okay=False, path_type=Path))(fn)
+    return fn
+
+
+def load_experiment(scenario: Path, overrides: tuple[str, ...], seed: int | None, *, check_conditions: bool = True):
+    from scenarios.build import build
+    from scenarios.loader import load
+
+    ov = list(overrides) + ([f"run.seed={seed}"] if seed is not None else [])
+    sc, frozen = load(scenario, ov)
+    return build(sc, source=str(scenario), check_conditions=check_conditions), frozen
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(package_name="resilient-state-estimation", prog_name="rse")
+def cli() -> None:
+    """Resilient distributed state estimation: simulate, run and check scenarios."""
+
+
+@cli.command()
+@scenario_options
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Run directory (default: runs/NAME-TIMESTAMP).")
+@click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
+@_handle_errors
+def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, progress: bool) -> None:
+    """Run SCENARIO in the in-process lockstep simulator and write a run directory.
+
+    Writes manifest.json, design.json, metrics.parquet and summary.json, prints the summary
+    table and each [expect] bound with its measured value.
+    """
+    from .console import expectations_table, out as console, round_progress, summary_table
+    from .rundir import default_run_dir, write_design, write_json, write_manifest, write_metrics
+    from .simulate import simulate as run_sim
+    from .summary import evaluate, summarise
+
+    exp, frozen = load_experiment(scenario, overrides, seed)
+    run_dir = out or default_run_dir(exp.scenario.run.name)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    run_id = uuid.uuid4().hex[:12]
+    write_manifest(run_dir, exp, frozen, driver="simulate", run_id=run_id)
+    write_design(run_dir, exp)
+    with round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress) as update:
+        res = run_sim(exp, progress=update)
+    results = evaluate(exp, res.monitor, res.regular)
+    summary = summarise(exp, res.monitor, res.regular, res.links)
+    summary["expectations"] = [r.as_dict() for r in results]
+    summary["performance"] = {"elapsed_s": res.elapsed, "agent_rounds_per_s": res.agent_rounds_per_s}
+    write_metrics(run_dir, exp, res.monitor, res.regular)
+    write_json(run_dir / "summary.json", summary)
+    console.print(summary_table(summary, title=f"{exp.scenario.run.name}: {res.rounds} rounds, window t in [{exp.window[0]:g}, {exp.window[1]:g}]"))
+    if results:
+        console.print(expectations_table(results))
+    console.print(f"run directory: {run_dir}")
+    failed = [r for r in results if not r.ok]
+    if failed:
+        raise ExpectationFailed(f"{len(failed)} of {len(results)} expectation(s) failed: " + "; ".join(r.label for r in failed))
+
+
+@cli.command()
+@scenario_options
+@_handle_errors
+def check(scenario: Path, overrides: tuple[str, ...], seed: int | None) -> None:
+    """Print the paper conditions for SCENARIO and whether they hold (exit 1 if one fails)."""
+    from rich.table import Table
+
+    from scenarios.build import conditions
+
+    from .console import out as console
+
+    exp, _ = load_experiment(scenario, overrides, seed, check_conditions=False)
+    table = Table(title=f"{exp.scenario.run.name}: conditions", title_justify="left")
+    table.add_column("")
+    table.add_column("condition")
+    table.add_column("value / detail")
+    ok = True
+    for c in conditions(exp):
+        mark = "" if c.holds is None else ("[green]holds" if c.holds else "[red]FAILS")
+        ok = ok and c.holds is not False
+        table.add_row(mark, c.name, c.detail)
+    console.print(table)
+    sys.exit(EXIT_OK if ok else EXIT_FAILED)
+
+
+@cli.group()
+def bench() -> None:
+    """Benchmarks that print throughput figures (not timed tests)."""
+
+
+@bench.command("simulate")
+@scenario_options
+@click.option("--repeat", type=click.IntRange(1, 100), default=3, show_default=True, help="Timed runs (best and median are printed).")
+@_handle_errors
+def bench_simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, repeat: int) -> None:
+    """Agent-rounds per second of the in-process simulator on SCENARIO (monitor included, no files written)."""
+    import platform
+    import statistics
+
+    from .console import out as console
+    from .simulate import simulate as run_sim
+
+    rates = []
+    for _ in range(repeat):
+        exp, _ = load_experiment(scenario, overrides, seed)  # fresh state every run
+        res = run_sim(exp)
+        rates.append(res.agent_rounds_per_s)
+    console.print(f"scenario {exp.scenario.run.name}: {exp.N} agents, {res.rounds} rounds, n = {exp.n}")
+    console.print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}")
+    console.print(f"simulator agent-rounds/s: median {statistics.median(rates):,.0f}, best {max(rates):,.0f} over {repeat} runs")
+
+
+def main() -> None:
+    cli(prog_name="rse")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,95 @@
+"""Terminal output shared by the sub-commands: progress bars, tables, errors (rich)."""
+
+from __future__ import annotations
+
+import math
+import sys
+from contextlib import contextmanager
+from typing import Any, Iterator
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+out = Console(highlight=False)
+err = Console(stderr=True, highlight=False)
+
+
+def fmt(v: Any, digits: int = 4) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+@contextmanager
+def round_progress(total: int, label: str, *, enabled: bool = True) -> Iterator[Any]:
+    """A progress bar over rounds showing rounds/s and the worst current error.
+
+    Yields ``update(k, worst_error)``.
+    """
+    if not enabled:
+        yield lambda k, worst: None
+        return
+    prog = Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("rounds"),
+        TextColumn("{task.fields[rate]}"),
+        TextColumn("worst |e|_inf {task.fields[worst]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=err,
+        transient=False,
+    )
+    with prog:
+        task = prog.add_task(label, total=total, rate="", worst="-")
+
+        def update(k: int, worst: float) -> None:
+            speed = prog.tasks[task].speed
+            prog.update(task, completed=k + 1, worst=fmt(worst, 3), rate=f"{speed:,.0f}/s" if speed else "")
+
+        yield update
+
+
+def summary_table(summary: dict, *, block: str = "x", title: str | None = None) -> Table:
+    t = Table(title=title, title_justify="left")
+    for col in ("agent", "regular", "final |e|_inf", "final |e|_2 / |x|_2", f"window max |e|_inf", "converged at round"):
+        t.add_column(col, justify="right")
+    for aid, rec in summary["agents"].items():
+        b = rec["blocks"].get(block, {})
+        t.add_row(aid, fmt(rec["regular"]), fmt(b.get("final_error_inf")), fmt(b.get("final_relative_error_2")),
+                  fmt(b.get("window_max_error_inf")), fmt(b.get("convergence_round")))
+    w = summary["worst_regular"].get(block, {})
+    if w:
+        t.add_row("[bold]worst regular", "", fmt(w.get("final_error_inf")), fmt(w.get("final_relative_error_2")),
+                  fmt(w.get("window_max_error_inf")), fmt(w.get("convergence_round")), end_section=True)
+    return t
+
+
+def expectations_table(results: list) -> Table:
+    t = Table(title="expectations", title_justify="left")
+    t.add_column("")
+    t.add_column("expectation")
+    t.add_column("measured", justify="right")
+    t.add_column("bound", justify="right")
+    for r in results:
+        bound = " and ".join(x for x in ((f"<= {fmt(r.max)}" if r.max is not None else ""), (f">= {fmt(r.min)}" if r.min is not None else "")) if x)
+        t.add_row("[green]ok" if r.ok else "[red]FAIL", r.label, fmt(r.value), bound)
+    return t
+
+
+def error(msg: str) -> None:
+    err.print(f"[bold red]error:[/] {msg}", soft_wrap=True)
+
+
+def is_tty() -> bool:
+    return sys.stderr.isatty()

@@ -1,0 +1,83 @@
+"""Every scenario file in scenarios/ runs end to end with its [expect] bounds, and the
+acceptance figures of the reproductions are asserted here with their variants."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.simulate import simulate
+from agents.summary import evaluate
+from scenarios.build import build
+from scenarios.loader import load
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+FILES = sorted(SCENARIOS.glob("*.toml"))
+
+
+def run(path, *overrides):
+    sc, _ = load(path, overrides)
+    exp = build(sc, source=str(path))
+    return exp, simulate(exp)
+
+
+def worst(exp, res, metric, t0, t1, block="x"):
+    mon = res.monitor
+    t = np.arange(mon.last_round + 1) * exp.dt
+    rows = (t >= t0 - 1e-9) & (t <= t1 + 1e-9)
+    b = mon.block_names.index(block)
+    return float(np.nanmax(mon.metric(metric)[rows][:, res.regular, b]))
+
+
+@pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
+def test_every_scenario_meets_its_expectations(path):
+    exp, res = run(path)
+    results = evaluate(exp, res.monitor, res.regular)
+    assert exp.scenario.expect, f"{path.name} declares no [[expect]] bounds"
+    failed = [f"{r.label}: {r.value:.4g}" for r in results if not r.ok]
+    assert not failed
+
+
+LKS = SCENARIOS / "lee_kim_shim.toml"
+LKS_BASE = SCENARIOS / "lee_kim_shim_nonresilient.toml"
+
+
+@pytest.mark.parametrize("dt", [1e-3, 1e-2])
+def test_lee_kim_shim_acceptance(dt):
+    exp, res = run(LKS, f"run.dt={dt}")
+    assert worst(exp, res, "error_inf", 10.0, 10.0) <= 0.01
+    assert worst(exp, res, "error_inf", 30.0, 40.0) <= 0.25
+    # the attacked agents are not all exact: the bound is met with a non-trivial margin only
+    assert worst(exp, res, "error_inf", 30.0, 40.0) >= 0.05
+
+
+@pytest.mark.parametrize("dt", [1e-3, 1e-2])
+def test_lee_kim_shim_high_gains(dt):
+    exp, res = run(LKS, f"run.dt={dt}", "estimator.kappa=5", "estimator.gamma=20")
+    assert worst(exp, res, "error_inf", 30.0, 40.0) <= 0.03
+
+
+@pytest.mark.parametrize("dt", [1e-3, 1e-2])
+def test_lee_kim_shim_without_attack(dt):
+    exp, res = run(LKS, f"run.dt={dt}", "attacks=[]")
+    assert worst(exp, res, "error_inf", 30.0, 40.0) <= 0.01
+
+
+@pytest.mark.parametrize("dt", [1e-3, 1e-2])
+def test_nonresilient_baseline_is_biased(dt):
+    exp, res = run(LKS_BASE, f"run.dt={dt}")
+    assert worst(exp, res, "error_inf", 30.0, 40.0) >= 0.3
+
+
+@pytest.mark.parametrize("kind, extra", [("ramp", "attacks.0.slope=0.5"), ("sine", "attacks.0.amplitude=3.0"),
+                                         ("random", "attacks.0.scale=5.0")])
+def test_lee_kim_shim_other_attack_kinds(kind, extra):
+    """Unbounded ramp, sinusoid and random attacks on sensor 1: the agents whose own sensor
+    is clean stay within the acceptance bound; agent 1, whose own partial observer is
+    corrupted, is pulled back by its neighbours and stays bounded (with a random attack
+    its sign term random-walks its estimate, which stays below 0.5 here)."""
+    exp, res = run(LKS, "run.dt=0.01", f"attacks.0.kind={kind}", extra, "attacks.0.omega=1.0")
+    t = np.arange(res.monitor.last_round + 1) * exp.dt
+    e = res.monitor.metric("error_inf")[t >= 30.0, :, 0]
+    assert np.max(e[:, 1:]) <= 0.25
+    assert np.max(e[:, 0]) <= (0.25 if kind != "random" else 0.5)
