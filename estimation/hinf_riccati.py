@@ -1,0 +1,353 @@
+"""Riccati differential equations of Ugrinovskii's resilient distributed H-infinity observer.
+
+Every node ``i`` solves, by itself and without communication, two Riccati differential
+equations of the same shape (Ugrinovskii, "Distributed H-infinity estimation resilient
+to biasing attacks", eqs. (25), (35) and (41))::
+
+    Y' = A Y + Y A' + B B' - Y (S - R / gamma^2) Y,      Y(0) = Y0,          (*)
+    S  = C' (D D')^{-1} C + sum_j W_j' U_j^{-1} W_j,
+
+* (35): the attack detector's equation, ``A = bold A_i``, ``B = bold B_i``,
+  ``C = [C_i 0]``, ``W_j = [W_ij 0]``, ``R = diag(R_i, R~_i)``, ``gamma^2``;
+* (41): the observer's equation, ``A``, ``B = B_1,i = [B -F_i]``, ``C_i``, ``W_ij``,
+  ``Ubar_ij``, ``Rbar_i``, ``gamma_bar^2``.
+
+Their gains are (36) ``L = Y C' (D D')^{-1}``, ``K_j = Y W_j' U_j^{-1}`` (split along the
+partition (31) for the detector) and (42); the detector's remaining gains are the
+differences (44).
+
+Integration (time-invariant coefficients, the case the offline LMIs (49)/(52) cover).
+The equations are stiff (for the paper's example the closed-loop matrix
+``A - Y S`` has eigenvalues down to about ``-1e5``), so they are not integrated by an
+explicit scheme. :class:`RiccatiFlow` uses the exact solution of (*): with ``Y_s`` the
+stabilising solution of the algebraic equation (``Ric(Y_s) = 0``, ``A_s = A - Y_s S~``
+Hurwitz, ``S~ = S - R / gamma^2``) the deviation ``Delta = Y - Y_s`` obeys
+``Delta' = A_s Delta + Delta A_s' - Delta S~ Delta`` whose flow over a step ``h`` is::
+
+    Delta(t + h) = E Delta(t) (I + G Delta(t))^{-1} E',
+    E = expm(A_s h),   G = int_0^h expm(A_s' s) S~ expm(A_s s) ds        (Van Loan).
+
+``E`` is contracting, so the map is well conditioned at any step ``h`` (an exponential of
+the Hamiltonian matrix itself would overflow at ``h = 1e-3`` for the example); it is exact
+up to rounding, whatever ``h``. A singular ``I + G Delta`` is a finite escape time.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from scipy.linalg import expm, schur
+from scipy.linalg.lapack import dgesv as _gesv
+
+from .errors import DesignError, NumericalError
+
+__all__ = [
+    "information_matrix",
+    "riccati_rhs",
+    "filter_gains",
+    "split_detector_gains",
+    "difference_gains",
+    "stabilizing_solution",
+    "check_riccati_solution",
+    "RiccatiFlow",
+]
+
+
+def _sym(M: np.ndarray) -> np.ndarray:
+    return 0.5 * (M + M.T)
+
+
+def information_matrix(
+    C: np.ndarray, D: np.ndarray, W: Sequence[np.ndarray], U: Sequence[np.ndarray]
+) -> np.ndarray:
+    """``S = C' (D D')^{-1} C + sum_j W_j' U_j^{-1} W_j`` (the bracket of (25), (35), (41)).
+
+    Parameters
+    ----------
+    C : (p, m) array
+        Measurement matrix (``[C_i 0]`` for the detector).
+    D : (p, q) array
+        Measurement-noise matrix; ``D D'`` must be invertible.
+    W : sequence of (p_j, m) arrays
+        One per in-neighbour ``j``.
+    U : sequence of (p_j, p_j) arrays
+        ``U_ij = H H' + Z_ij`` (positive definite), same order as ``W``.
+
+    Returns
+    -------
+    S : (m, m) array, symmetric positive semidefinite.
+    """
+    C = np.atleast_2d(np.asarray(C, dtype=float))
+    D = np.atleast_2d(np.asarray(D, dtype=float))
+    if len(W) != len(U):
+        raise DesignError(f"information_matrix: {len(W)} matrices W but {len(U)} matrices U")
+    DD = D @ D.T
+    try:
+        S = C.T @ np.linalg.solve(DD, C)
+        for Wj, Uj in zip(W, U):
+            Wj = np.atleast_2d(np.asarray(Wj, dtype=float))
+            S = S + Wj.T @ np.linalg.solve(np.asarray(Uj, dtype=float), Wj)
+    except np.linalg.LinAlgError as exc:
+        raise DesignError(f"information_matrix: D D' or some U_ij is singular ({exc})") from exc
+    return _sym(S)
+
+
+def riccati_rhs(
+    Y: np.ndarray, *, A: np.ndarray, B: np.ndarray, S: np.ndarray, R: np.ndarray, gamma2: float
+) -> np.ndarray:
+    """Right-hand side of the Riccati differential equations (35) / (41).
+
+    ``A Y + Y A' + B B' - Y (S - R / gamma2) Y``.
+
+    Parameters
+    ----------
+    Y : (m, m) symmetric array
+    A : (m, m) array
+    B : (m, r) array
+    S : (m, m) array, from :func:`information_matrix`
+    R : (m, m) array, the weight ``R_i`` (bold ``R_i`` for (35), ``Rbar_i`` for (41))
+    gamma2 : float, > 0
+        ``gamma^2`` or ``gamma_bar^2``.
+
+    Returns
+    -------
+    (m, m) symmetric array.
+    """
+    if not gamma2 > 0:
+        raise DesignError(f"riccati_rhs: gamma2 must be > 0, got {gamma2}")
+    Y = np.asarray(Y, dtype=float)
+    St = np.asarray(S, dtype=float) - np.asarray(R, dtype=float) / gamma2
+    return _sym(A @ Y + Y @ A.T + B @ B.T - Y @ St @ Y)
+
+
+def filter_gains(
+    Y: np.ndarray,
+    *,
+    C: np.ndarray,
+    D: np.ndarray,
+    W: Sequence[np.ndarray],
+    U: Sequence[np.ndarray],
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Gains (36) / (42): ``L = Y C' (D D')^{-1}``, ``K_j = Y W_j' U_j^{-1}``.
+
+    Parameters
+    ----------
+    Y : (m, m) array
+    C : (p, m) array; D : (p, q) array
+    W, U : sequences of (p_j, m) and (p_j, p_j) arrays, one per in-neighbour.
+
+    Returns
+    -------
+    L : (m, p) array
+    K : list of (m, p_j) arrays, same order as ``W``.
+    """
+    Y = np.asarray(Y, dtype=float)
+    C = np.atleast_2d(np.asarray(C, dtype=float))
+    D = np.atleast_2d(np.asarray(D, dtype=float))
+    L = np.linalg.solve(D @ D.T, C @ Y.T).T  # Y C' (DD')^{-1}, (DD') symmetric
+    K = [np.linalg.solve(np.asarray(Uj, float), np.atleast_2d(Wj) @ Y.T).T for Wj, Uj in zip(W, U)]
+    return L, K
+
+
+def split_detector_gains(
+    L_bold: np.ndarray, K_bold: Sequence[np.ndarray], *, n: int
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """Partition the detector gains (36) along (31): ``bold L = [L_hat; L_check]``.
+
+    Parameters
+    ----------
+    L_bold : (n + n_eps, p) array; K_bold : list of (n + n_eps, p_j) arrays
+    n : int, plant order.
+
+    Returns
+    -------
+    L_hat (n, p), L_check (n_eps, p), K_hat list of (n, p_j), K_check list of (n_eps, p_j).
+    """
+    return (
+        L_bold[:n],
+        L_bold[n:],
+        [Kj[:n] for Kj in K_bold],
+        [Kj[n:] for Kj in K_bold],
+    )
+
+
+def difference_gains(
+    L_hat: np.ndarray, K_hat: Sequence[np.ndarray], L: np.ndarray, K: Sequence[np.ndarray]
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Eq. (44): ``L_bar = L_hat - L``, ``K_bar_j = K_hat_j - K_j``."""
+    if len(K_hat) != len(K):
+        raise DesignError(f"difference_gains: {len(K_hat)} vs {len(K)} neighbour gains")
+    return L_hat - L, [a - b for a, b in zip(K_hat, K)]
+
+
+def stabilizing_solution(
+    *, A: np.ndarray, B: np.ndarray, S: np.ndarray, R: np.ndarray, gamma2: float
+) -> np.ndarray:
+    """Stabilising solution ``Y_s`` of ``A Y + Y A' + B B' - Y (S - R/gamma2) Y = 0``.
+
+    ``S - R/gamma2`` may be indefinite (H-infinity case), so this uses the ordered real
+    Schur form of the Hamiltonian ``[[A', -S~], [-B B', -A]]`` directly.
+
+    Returns
+    -------
+    Y_s : (m, m) symmetric array with ``A - Y_s S~`` Hurwitz.
+
+    Raises
+    ------
+    NumericalError
+        The Hamiltonian has eigenvalues on (or numerically near) the imaginary axis, or its
+        stable subspace is not a graph: there is no stabilising solution.
+    """
+    A = np.asarray(A, dtype=float)
+    m = A.shape[0]
+    St = np.asarray(S, dtype=float) - np.asarray(R, dtype=float) / gamma2
+    Ham = np.block([[A.T, -St], [-B @ B.T, -A]])
+    scale = max(1.0, np.abs(Ham).max())
+    T, Zs, sdim = schur(Ham, output="real", sort=lambda re, im: re < -1e-10 * scale)
+    if sdim != m:
+        raise NumericalError(
+            f"no stabilising Riccati solution: the Hamiltonian has {2 * m - 2 * sdim} "
+            "eigenvalues on the imaginary axis"
+        )
+    U1, U2 = Zs[:m, :m], Zs[m:, :m]
+    if np.linalg.cond(U1) > 1e12:
+        raise NumericalError("no stabilising Riccati solution: stable subspace is not a graph")
+    Ys = _sym(np.linalg.solve(U1.T, U2.T).T)
+    return Ys
+
+
+def check_riccati_solution(Y: np.ndarray, *, bound: float, name: str = "Y", t: float | None = None) -> None:
+    """Raise :class:`NumericalError` unless ``Y`` is finite, positive definite and bounded.
+
+    Positive definiteness is tested by a Cholesky factorisation, boundedness by
+    ``trace(Y) <= bound`` (for a positive definite ``Y`` this bounds every eigenvalue).
+
+    Parameters
+    ----------
+    Y : (m, m) symmetric array
+    bound : float
+        Largest admissible trace (the "bounded" of Theorems 1-2, made concrete).
+    name : str
+        Used in the message, e.g. ``"detector Riccati (35) of node 2"``.
+    t : float, optional
+        Time, used in the message.
+    """
+    when = "" if t is None else f" at t = {t:.6g}"
+    if not np.all(np.isfinite(Y)):
+        raise NumericalError(f"{name}{when}: solution is not finite (finite escape time)")
+    try:
+        np.linalg.cholesky(Y)
+    except np.linalg.LinAlgError:
+        lam = np.linalg.eigvalsh(_sym(Y))[0]
+        raise NumericalError(
+            f"{name}{when}: solution stopped being positive definite (smallest eigenvalue {lam:.3g})"
+        ) from None
+    tr = float(np.trace(Y))
+    if tr > bound:
+        raise NumericalError(
+            f"{name}{when}: solution left the bound trace(Y) <= {bound:.3g} (trace {tr:.3g}); "
+            "finite escape time"
+        )
+
+
+class RiccatiFlow:
+    """Exact step-by-step solution of a time-invariant Riccati equation (35) / (41).
+
+    Parameters
+    ----------
+    A : (m, m) array; B : (m, r) array; S : (m, m) array; R : (m, m) array
+        Coefficients of (*) in the module docstring.
+    gamma2 : float
+    Y0 : (m, m) array
+        Initial value (for the design of :mod:`estimation.hinf_lmi`, ``gamma^2 Q^-1``).
+    dt : float
+        Step of :meth:`step`.
+    bound : float, keyword-only
+        Largest admissible ``trace(Y)``; default ``1e3 * max(trace Y0, trace Y_s)``.
+    name : str, keyword-only
+        Used in error messages.
+
+    Notes
+    -----
+    Every :meth:`step` applies the exact flow map of the module docstring and then
+    :func:`check_riccati_solution`, so a solution that stops being positive definite or
+    bounded stops the node with :class:`NumericalError` at the first step where it does.
+    """
+
+    def __init__(
+        self,
+        *,
+        A: np.ndarray,
+        B: np.ndarray,
+        S: np.ndarray,
+        R: np.ndarray,
+        gamma2: float,
+        Y0: np.ndarray,
+        dt: float,
+        bound: float | None = None,
+        name: str = "Riccati equation",
+    ) -> None:
+        if not dt > 0:
+            raise DesignError(f"{name}: dt must be > 0, got {dt}")
+        A = np.asarray(A, dtype=float)
+        m = A.shape[0]
+        Y0 = np.asarray(Y0, dtype=float)
+        if Y0.shape != (m, m):
+            raise DesignError(f"{name}: Y0 must have shape {(m, m)}, got {Y0.shape}")
+        self.name = name
+        self.dt = float(dt)
+        self._t = 0.0
+        Ys = stabilizing_solution(A=A, B=B, S=S, R=R, gamma2=gamma2)
+        St = np.asarray(S, dtype=float) - np.asarray(R, dtype=float) / gamma2
+        As = A - Ys @ St
+        # Van Loan: expm([[-As', St], [0, As]] h) = [[*, F12], [0, E]], G = E' F12.
+        V = expm(np.block([[-As.T, St], [np.zeros((m, m)), As]]) * self.dt)
+        self._E = V[m:, m:]
+        self._G = _sym(self._E.T @ V[:m, m:])
+        self._Ys = Ys
+        self._Delta = _sym(Y0) - Ys
+        self._Et = self._E.T.copy()
+        self._I = np.eye(m)
+        tr_max = max(float(np.trace(Y0)), float(np.trace(Ys)))
+        self.bound = float(bound) if bound is not None else 1e3 * abs(tr_max)
+        check_riccati_solution(self.Y, bound=self.bound, name=name, t=0.0)
+
+    @property
+    def Y(self) -> np.ndarray:
+        """Current solution, (m, m) copy."""
+        return _sym(self._Ys + self._Delta)
+
+    @property
+    def Y_stationary(self) -> np.ndarray:
+        """The stabilising algebraic solution the flow converges to, (m, m) copy."""
+        return self._Ys.copy()
+
+    @property
+    def t(self) -> float:
+        return self._t
+
+    @property
+    def deviation(self) -> np.ndarray:
+        """``Y - Y_s`` (read-only view, for cheap change tests)."""
+        v = self._Delta.view()
+        v.flags.writeable = False
+        return v
+
+    def step(self) -> np.ndarray:
+        """Advance by ``dt`` and return the new ``Y`` (checked; see class notes)."""
+        t_new = self._t + self.dt
+        # (I + Delta G)^-1 Delta by LAPACK gesv; det(I + Delta G_s) is 1 at s = 0 and vanishes
+        # exactly at an escape time, so a non-positive determinant means the solution went
+        # through infinity within this step.
+        lu, piv, X, info = _gesv(self._I + self._Delta @ self._G, self._Delta)
+        d = np.diag(lu)
+        sign = np.prod(np.sign(d)) * (-1.0) ** np.count_nonzero(piv != np.arange(len(piv)))
+        if info != 0 or sign <= 0 or not np.all(np.isfinite(X)):
+            raise NumericalError(f"{self.name} at t = {t_new:.6g}: solution escapes to infinity (finite escape time)")
+        D = self._E @ X @ self._Et
+        self._Delta = 0.5 * (D + D.T)
+        self._t = t_new
+        Y = self._Ys + self._Delta
+        check_riccati_solution(Y, bound=self.bound, name=self.name, t=self._t)
+        return Y
