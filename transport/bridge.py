@@ -1,0 +1,189 @@
+"""The one bridge from Zenoh's callback threads into asyncio.
+
+zenoh-python has no asyncio API: a subscriber's callback runs on a Zenoh-owned thread.
+:func:`make_bridge` returns such a callback. It converts the sample to plain Python
+values on the Zenoh thread (``(key_expr, payload_bytes)`` by default), hands them to the
+event loop with ``loop.call_soon_threadsafe`` and puts them into a bounded
+``asyncio.Queue`` there. It never blocks the Zenoh thread::
+
+    loop = asyncio.get_running_loop()
+    queue: asyncio.Queue[tuple[str, bytes]] = asyncio.Queue(maxsize=1024)
+    stats = BridgeStats()
+    sub = session.declare_subscriber(keys.est_pattern(), make_bridge(loop, queue, stats=stats))
+    key, payload = await queue.get()
+
+* Bounded: items already handed to the loop but not yet queued count against the queue's
+  ``maxsize`` too, so neither the queue nor the loop's ready list grows without bound when
+  the consumer is slow. An item that does not fit is dropped and counted
+  (``stats.dropped_full``), with a warning on the first drop and every 1000th after.
+* Never silent: an exception while converting a sample or scheduling it is logged with
+  its traceback and counted (``stats.errors``).
+* Shutdown-safe: once the loop is closed, samples are dropped and counted
+  (``stats.dropped_closed``) without raising into Zenoh; a sample already handed to a
+  loop that then stops is simply never delivered.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from dataclasses import dataclass, field
+from typing import Any, Callable, TypeVar
+
+import zenoh
+
+__all__ = ["BridgeStats", "make_bridge", "sample_to_item", "liveliness_to_item"]
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+_WARN_EVERY = 1000
+
+
+def sample_to_item(sample: Any) -> tuple[str, bytes]:
+    """``(key_expr, payload)`` of a data sample: ``str(sample.key_expr)``, ``payload.to_bytes()``."""
+    return str(sample.key_expr), sample.payload.to_bytes()
+
+
+def liveliness_to_item(sample: Any) -> tuple[str, bool]:
+    """``(key_expr, alive)`` of a liveliness sample: ``True`` when a token appears (PUT),
+    ``False`` when it goes away (DELETE: undeclared, or its session closed or died)."""
+    return str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT
+
+
+@dataclass
+class BridgeStats:
+    """Counters of one bridge (or several sharing it); safe to read from any thread.
+
+    Attributes
+    ----------
+    received : int
+        Items put into the queue.
+    dropped_full : int
+        Items dropped because the queue (plus items in flight to it) was full.
+    dropped_closed : int
+        Samples dropped because the event loop was already closed.
+    errors : int
+        Exceptions while converting or scheduling a sample (each one logged).
+    """
+
+    received: int = 0
+    dropped_full: int = 0
+    dropped_closed: int = 0
+    errors: int = 0
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    def _add(self, name: str, n: int = 1) -> int:
+        with self._lock:
+            value = getattr(self, name) + n
+            setattr(self, name, value)
+            return value
+
+    def snapshot(self) -> dict[str, int]:
+        """The counters as a plain dict (e.g. for ``summary.json``)."""
+        with self._lock:
+            return {
+                "received": self.received,
+                "dropped_full": self.dropped_full,
+                "dropped_closed": self.dropped_closed,
+                "errors": self.errors,
+            }
+
+
+def make_bridge(
+    loop: asyncio.AbstractEventLoop,
+    queue: "asyncio.Queue[T]",
+    *,
+    convert: Callable[[Any], T] = sample_to_item,  # type: ignore[assignment]
+    stats: BridgeStats | None = None,
+    name: str = "",
+) -> Callable[[Any], None]:
+    """Return a Zenoh callback that forwards samples into ``queue`` on ``loop``.
+
+    Parameters
+    ----------
+    loop : asyncio event loop
+        The loop that owns ``queue`` (``asyncio.get_running_loop()`` in the consumer).
+    queue : asyncio.Queue
+        Bounded (``maxsize > 0``); only ever touched from ``loop``'s thread.
+    convert : callable, optional
+        Runs on the Zenoh thread and turns a sample into the queued item; must be fast
+        and must not keep a reference to the sample. Default :func:`sample_to_item`;
+        use :func:`liveliness_to_item` for a liveliness subscriber.
+    stats : BridgeStats, optional
+        Counters to update (a fresh one if not given; reachable as ``callback.stats``).
+    name : str
+        Shown in log messages (e.g. the key expression subscribed to).
+
+    Returns
+    -------
+    callable
+        ``callback(sample) -> None`` for ``session.declare_subscriber(key, callback)``,
+        with attribute ``stats``.
+    """
+    if queue.maxsize <= 0:
+        raise ValueError("make_bridge needs a bounded asyncio.Queue (maxsize > 0)")
+    counters = stats if stats is not None else BridgeStats()
+    label = f" [{name}]" if name else ""
+    maxsize = queue.maxsize
+    in_flight = 0  # handed to the loop, not yet put into the queue
+    lock = threading.Lock()
+
+    def _dropped_full() -> None:
+        n = counters._add("dropped_full")
+        if n == 1 or n % _WARN_EVERY == 0:
+            log.warning("bridge%s: queue full, dropped %d sample(s) so far", label, n)
+
+    def _deliver(item: T) -> None:  # on the loop's thread
+        nonlocal in_flight
+        with lock:
+            in_flight -= 1
+        try:
+            queue.put_nowait(item)
+        except asyncio.QueueFull:
+            _dropped_full()
+        else:
+            counters._add("received")
+
+    def callback(sample: Any) -> None:  # on a Zenoh thread: must never block or raise
+        nonlocal in_flight
+        try:
+            item = convert(sample)
+        except Exception:
+            counters._add("errors")
+            log.exception("bridge%s: cannot convert a sample; dropped", label)
+            return
+        with lock:
+            # qsize() from another thread is a racy read of a deque's length: harmless,
+            # it only makes the bound approximate by the items the loop is taking out.
+            if in_flight + queue.qsize() >= maxsize:
+                full = True
+            else:
+                full = False
+                in_flight += 1
+        if full:
+            _dropped_full()
+            return
+        try:
+            loop.call_soon_threadsafe(_deliver, item)
+        except RuntimeError:
+            # The loop is closed (shutdown): nothing will consume this item.
+            with lock:
+                in_flight -= 1
+            if loop.is_closed():
+                n = counters._add("dropped_closed")
+                if n == 1:
+                    log.debug("bridge%s: event loop closed, dropping samples", label)
+            else:
+                counters._add("errors")
+                log.exception("bridge%s: cannot schedule a sample; dropped", label)
+        except Exception:
+            with lock:
+                in_flight -= 1
+            counters._add("errors")
+            log.exception("bridge%s: cannot schedule a sample; dropped", label)
+
+    callback.stats = counters  # type: ignore[attr-defined]
+    return callback

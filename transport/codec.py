@@ -1,0 +1,559 @@
+"""The message codec: what goes over the wire, and strict decoding of untrusted bytes.
+
+A message is a msgpack map (never ``msgpack-numpy``, which unpickles)::
+
+    {"v": 1,                      # wire version, :data:`VERSION`
+     "kind": "est",               # one of :data:`KINDS`
+     "from": 3,                   # sender id (agents 0.., roles negative, see PLANT_ID)
+     "k": 17,                     # round stamp
+     "to": 5,                     # optional: receiver id of an addressed message
+     "meta": {"cmd": "stop"},     # optional: small scalars (str / int / float / bool)
+     "arr": {"x": [[4], b"..."]}} # named float64 arrays: [shape, little-endian bytes]
+
+Decoding is strict because the bytes come from the network (a Byzantine agent or an
+outside process may send anything). :func:`decode` checks, in this order, and raises
+:class:`~estimation.errors.MessageError` with the ``reason`` tag in brackets:
+
+1. the size, before anything is parsed (``size``);
+2. msgpack with tight limits: no ext types, bounded strings / arrays / maps, UTF-8
+   strings, string map keys only, no trailing bytes (``decode``);
+3. a map with ``v`` equal to :data:`VERSION` (``type``, ``keys``, ``version``);
+4. exactly the known keys (``keys``), each with its type and integer range (``type``);
+5. the sender (and receiver) that the key expression implies, when given (``sender``);
+6. the array names the schema lists for this kind (``keys``), their shapes (``shape``)
+   and finite values (``nonfinite``).
+
+A decoded :class:`Message` owns its arrays (copies, never views into the input) and they
+are read-only. A :class:`Message` built locally is validated the same way when it is
+constructed, so :func:`encode` never puts an invalid message on the wire.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import sys
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Any, Mapping, Sequence, Union
+
+import msgpack
+import numpy as np
+
+from estimation.errors import MessageError
+
+__all__ = [
+    "VERSION",
+    "KINDS",
+    "DEFAULT_MAX_BYTES",
+    "PLANT_ID",
+    "MONITOR_ID",
+    "LAUNCHER_ID",
+    "MIN_ID",
+    "MAX_ID",
+    "MAX_STAMP",
+    "Message",
+    "Schema",
+    "encode",
+    "decode",
+    "to_wire",
+]
+
+# ---------------------------------------------------------------------------- constants
+
+VERSION = 1
+"""Wire version written in ``v``; any other value is rejected (reason ``"version"``)."""
+
+KINDS = frozenset({"est", "meas", "truth", "ctl", "done"})
+"""Message kinds: an agent's estimate, a plant measurement, the true state (monitor
+only), a control message (round start, stop, ...), an agent's end-of-round report."""
+
+DEFAULT_MAX_BYTES = 1 << 20
+"""Default cap on an encoded message (1 MiB), checked before any parsing."""
+
+PLANT_ID = -1
+MONITOR_ID = -2
+LAUNCHER_ID = -3
+"""Sender ids of the roles that are not agents (agents are ``0 .. MAX_ID``)."""
+
+MIN_ID = -16  # ids -16 .. -1 are reserved for roles
+MAX_ID = (1 << 16) - 1
+MAX_STAMP = (1 << 53) - 1  # round stamps are 0 .. 2**53 - 1 (exact as a float64 too)
+_INT64_MIN, _INT64_MAX = -(1 << 63), (1 << 63) - 1
+
+MAX_NDIM = 4
+MAX_DIM = 1 << 24
+MAX_FIELDS = 32  # arrays per message
+MAX_META = 16  # metadata entries per message
+MAX_STR_LEN = 256  # any string on the wire (kind, names, metadata values)
+
+_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,31}\Z")
+
+# Keys of the wire map.
+_K_VERSION, _K_KIND, _K_FROM, _K_STAMP, _K_TO, _K_META, _K_ARR = (
+    "v", "kind", "from", "k", "to", "meta", "arr",
+)
+_REQUIRED = frozenset({_K_VERSION, _K_KIND, _K_FROM, _K_STAMP, _K_ARR})
+_ALLOWED = _REQUIRED | {_K_TO, _K_META}
+
+_LITTLE = sys.byteorder == "little"
+_isfinite = np.isfinite
+_count_nonzero = np.count_nonzero
+_F8 = np.dtype("<f8")
+
+# Limits handed to the msgpack unpacker (the byte cap is per call).
+_MAX_ARRAY_LEN = 2 * MAX_NDIM  # the longest msgpack array is a shape (or a [shape, data] pair)
+_MAX_MAP_LEN = max(MAX_FIELDS, MAX_META, len(_ALLOWED))
+
+ShapeSpec = tuple[Union[int, None], ...]
+"""An expected shape: ints are exact, ``None`` accepts any length along that axis."""
+
+MetaValue = Union[str, int, float, bool]
+
+_EMPTY: Mapping[str, Any] = MappingProxyType({})
+
+
+def _fail(reason: str, message: str) -> MessageError:
+    return MessageError(message, reason=reason)
+
+
+def _is_int(x: object) -> bool:
+    # bool is a subclass of int; a bool is never a valid id, stamp or dimension.
+    return type(x) is int
+
+
+# ------------------------------------------------------------------------------ message
+
+
+def _check_id(value: object, what: str) -> int:
+    if not _is_int(value) or not MIN_ID <= value <= MAX_ID:  # type: ignore[operator]
+        raise _fail("type", f"{what} must be an int in [{MIN_ID}, {MAX_ID}], got {value!r:.40}")
+    return value  # type: ignore[return-value]
+
+
+def _check_stamp(value: object) -> int:
+    if not _is_int(value) or not 0 <= value <= MAX_STAMP:  # type: ignore[operator]
+        raise _fail("type", f"stamp must be an int in [0, 2**53 - 1], got {value!r:.40}")
+    return value  # type: ignore[return-value]
+
+
+def _check_kind(value: object) -> str:
+    if type(value) is not str or value not in KINDS:
+        raise _fail("type", f"kind must be one of {sorted(KINDS)}, got {value!r:.40}")
+    return value
+
+
+def _check_meta(meta: object) -> Mapping[str, MetaValue]:
+    if type(meta) is not dict:
+        raise _fail("type", f"meta must be a map, got {type(meta).__name__}")
+    if len(meta) > MAX_META:  # type: ignore[arg-type]
+        raise _fail("keys", f"meta has {len(meta)} entries, at most {MAX_META}")  # type: ignore[arg-type]
+    for key, value in meta.items():  # type: ignore[attr-defined]
+        if type(key) is not str or not _NAME_RE.match(key):
+            raise _fail("keys", f"meta key {key!r:.40} is not a name")
+        tv = type(value)
+        if tv is float:
+            if not math.isfinite(value):
+                raise _fail("nonfinite", f"meta[{key!r}] is not finite")
+        elif tv is int:
+            if not _INT64_MIN <= value <= _INT64_MAX:
+                raise _fail("type", f"meta[{key!r}] is out of the int64 range")
+        elif tv is str:
+            if len(value) > MAX_STR_LEN:
+                raise _fail("type", f"meta[{key!r}] is longer than {MAX_STR_LEN} characters")
+        elif tv is not bool:
+            raise _fail("type", f"meta[{key!r}] must be str, int, float or bool, got {tv.__name__}")
+    return meta  # type: ignore[return-value]
+
+
+def _all_finite(a: np.ndarray) -> bool:
+    # Exact, never warns (a sum or a dot product would warn on inf / overflow), and
+    # about twice as fast as ``np.isfinite(a).all()`` on small arrays.
+    return _count_nonzero(_isfinite(a)) == a.size
+
+
+def _freeze_array(name: object, value: object) -> np.ndarray:
+    if type(name) is not str or not _NAME_RE.match(name):
+        raise _fail("keys", f"array name {name!r:.40} is not a name")
+    if isinstance(value, (str, bytes)):
+        raise _fail("type", f"array {name!r} is a string, not numbers")
+    try:
+        a = np.array(value, dtype=np.float64, copy=True, order="C")
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise _fail("type", f"array {name!r} is not convertible to float64: {exc}") from exc
+    if a.ndim > MAX_NDIM or (a.ndim and max(a.shape) > MAX_DIM):
+        raise _fail("shape", f"array {name!r} has shape {a.shape}, beyond the wire limits")
+    if not _all_finite(a):
+        raise _fail("nonfinite", f"array {name!r} has non-finite values")
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class Message:
+    """One message on the wire (all fields keyword-only, validated on construction).
+
+    Parameters
+    ----------
+    kind : str
+        One of :data:`KINDS`.
+    sender : int
+        Agent id ``0 .. MAX_ID``, or a role id (:data:`PLANT_ID`, :data:`MONITOR_ID`,
+        :data:`LAUNCHER_ID`).
+    stamp : int
+        The round ``k`` the content belongs to, ``0 .. 2**53 - 1``.
+    arrays : mapping of name -> float array
+        Copied to C-contiguous float64, finite, read-only; stored in a read-only mapping.
+    receiver : int, optional
+        The addressed receiver (``rse/{run}/agent/{i}/est/{j}`` carries ``j``).
+    meta : mapping of name -> str | int | float | bool, optional
+        Small scalar metadata (at most :data:`MAX_META` entries), e.g. a control command.
+        Always a read-only mapping after construction (empty when not given).
+    version : int
+        Wire version; only :data:`VERSION` exists.
+    """
+
+    kind: str
+    sender: int
+    stamp: int
+    arrays: Mapping[str, np.ndarray]
+    receiver: int | None = None
+    meta: Mapping[str, MetaValue] | None = None
+    version: int = VERSION
+
+    def __post_init__(self) -> None:
+        if self.version != VERSION or not _is_int(self.version):
+            raise _fail("version", f"version must be {VERSION}, got {self.version!r}")
+        _check_kind(self.kind)
+        _check_id(self.sender, "sender")
+        _check_stamp(self.stamp)
+        if self.receiver is not None:
+            _check_id(self.receiver, "receiver")
+        if type(self.arrays) is not dict and not isinstance(self.arrays, Mapping):
+            raise _fail("type", f"arrays must be a mapping, got {type(self.arrays).__name__}")
+        if len(self.arrays) > MAX_FIELDS:
+            raise _fail("keys", f"{len(self.arrays)} arrays, at most {MAX_FIELDS}")
+        arrays = {name: _freeze_array(name, value) for name, value in self.arrays.items()}
+        if self.meta is None:
+            meta: Mapping[str, MetaValue] = _EMPTY
+        elif isinstance(self.meta, Mapping):
+            meta = MappingProxyType(dict(_check_meta(dict(self.meta))))
+        else:
+            raise _fail("type", f"meta must be a mapping, got {type(self.meta).__name__}")
+        object.__setattr__(self, "arrays", MappingProxyType(arrays))
+        object.__setattr__(self, "meta", meta)
+
+    @classmethod
+    def _trusted(
+        cls,
+        kind: str,
+        sender: int,
+        stamp: int,
+        arrays: dict[str, np.ndarray],
+        receiver: int | None,
+        meta: dict[str, MetaValue],
+    ) -> "Message":
+        # Used by decode(), which has already validated every field: skip the checks.
+        self = _new(cls)
+        _set_kind(self, kind)
+        _set_sender(self, sender)
+        _set_stamp(self, stamp)
+        _set_arrays(self, MappingProxyType(arrays))
+        _set_receiver(self, receiver)
+        _set_meta(self, MappingProxyType(meta) if meta else _EMPTY)
+        _set_version(self, VERSION)
+        return self
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Message):
+            return NotImplemented
+        return (
+            (self.version, self.kind, self.sender, self.stamp, self.receiver)
+            == (other.version, other.kind, other.sender, other.stamp, other.receiver)
+            and dict(self.meta) == dict(other.meta)
+            and self.arrays.keys() == other.arrays.keys()
+            and all(
+                self.arrays[n].shape == other.arrays[n].shape
+                and np.array_equal(self.arrays[n], other.arrays[n])
+                for n in self.arrays
+            )
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+# The slot descriptors of the frozen dataclass: setting through them bypasses the frozen
+# __setattr__ (for Message._trusted only).
+_new = object.__new__
+_set_kind = Message.__dict__["kind"].__set__
+_set_sender = Message.__dict__["sender"].__set__
+_set_stamp = Message.__dict__["stamp"].__set__
+_set_arrays = Message.__dict__["arrays"].__set__
+_set_receiver = Message.__dict__["receiver"].__set__
+_set_meta = Message.__dict__["meta"].__set__
+_set_version = Message.__dict__["version"].__set__
+
+
+# ------------------------------------------------------------------------------- schema
+
+
+class Schema:
+    """The expected array names and shapes per message kind.
+
+    Built once per scenario (and per key family, e.g. a schema that accepts only ``est``
+    on estimate keys) and handed to :func:`decode`::
+
+        schema = Schema({"est": {"x": (4,)}, "ctl": {}})
+        schema = Schema({"meas": {"y": (None,)}})   # None: any length on that axis
+
+    A kind that is not listed is rejected (reason ``"type"``); a message must carry
+    exactly the listed arrays (reason ``"keys"``) with matching shapes (``"shape"``).
+    """
+
+    __slots__ = ("_kinds",)
+
+    def __init__(self, kinds: Mapping[str, Mapping[str, Sequence[int | None]]]) -> None:
+        if isinstance(kinds, Schema):
+            self._kinds: dict[str, dict[str, ShapeSpec]] = kinds._kinds
+            return
+        if not isinstance(kinds, Mapping):
+            raise TypeError(f"Schema expects a mapping kind -> {{name: shape}}, got {type(kinds).__name__}")
+        built: dict[str, dict[str, ShapeSpec]] = {}
+        for kind, fields in kinds.items():
+            if kind not in KINDS:
+                raise ValueError(f"Schema: unknown kind {kind!r}; valid kinds are {sorted(KINDS)}")
+            if not isinstance(fields, Mapping):
+                raise ValueError(f"Schema[{kind!r}] must map array names to shapes, got {fields!r}")
+            if len(fields) > MAX_FIELDS:
+                raise ValueError(f"Schema[{kind!r}] lists {len(fields)} arrays, at most {MAX_FIELDS}")
+            built[kind] = {}
+            for name, shape in fields.items():
+                if type(name) is not str or not _NAME_RE.match(name):
+                    raise ValueError(f"Schema[{kind!r}]: array name {name!r} is not a name")
+                spec = tuple(shape) if not isinstance(shape, (str, bytes)) else None
+                if spec is None or len(spec) > MAX_NDIM or not all(
+                    d is None or (_is_int(d) and 0 <= d <= MAX_DIM) for d in spec
+                ):
+                    raise ValueError(
+                        f"Schema[{kind!r}][{name!r}] must be a shape of at most {MAX_NDIM} "
+                        f"ints in [0, {MAX_DIM}] or None, got {shape!r}"
+                    )
+                built[kind][name] = spec
+        self._kinds = built
+
+    def __contains__(self, kind: object) -> bool:
+        return kind in self._kinds
+
+    def __repr__(self) -> str:
+        return f"Schema({self._kinds!r})"
+
+    @property
+    def kinds(self) -> frozenset[str]:
+        """The kinds this schema accepts."""
+        return frozenset(self._kinds)
+
+    def fields(self, kind: str) -> Mapping[str, ShapeSpec]:
+        """The expected ``{name: shape}`` of ``kind`` (KeyError if not accepted)."""
+        return MappingProxyType(self._kinds[kind])
+
+    def only(self, *kinds: str) -> "Schema":
+        """A schema accepting only ``kinds`` (each must be in this one)."""
+        missing = [k for k in kinds if k not in self._kinds]
+        if missing:
+            raise ValueError(f"Schema.only: kinds {missing} are not in {sorted(self._kinds)}")
+        return Schema({k: self._kinds[k] for k in kinds})
+
+    def check(self, msg: Message) -> None:
+        """Raise :class:`MessageError` unless ``msg`` matches this schema."""
+        fields = self._kinds.get(msg.kind)
+        if fields is None:
+            raise _fail("type", f"kind {msg.kind!r} is not accepted here (expected {sorted(self._kinds)})")
+        if msg.arrays.keys() != fields.keys():
+            raise _fail("keys", f"{msg.kind!r} arrays {sorted(msg.arrays)} != expected {sorted(fields)}")
+        for name, spec in fields.items():
+            _check_shape(name, msg.arrays[name].shape, spec)
+
+
+def _as_schema(schema: Schema | Mapping[str, Mapping[str, Sequence[int | None]]]) -> Schema:
+    return schema if isinstance(schema, Schema) else Schema(schema)
+
+
+def _check_shape(name: str, shape: tuple[int, ...], spec: ShapeSpec) -> None:
+    if shape == spec:
+        return
+    if len(shape) != len(spec) or any(e is not None and e != d for d, e in zip(shape, spec)):
+        expected = "(" + ", ".join("*" if e is None else str(e) for e in spec) + ("," if len(spec) == 1 else "") + ")"
+        raise _fail("shape", f"array {name!r} has shape {shape}, expected {expected}")
+
+
+# ------------------------------------------------------------------------------- encode
+
+
+def to_wire(msg: Message) -> dict[str, Any]:
+    """The plain msgpack map of ``msg`` (what :func:`encode` packs).
+
+    Public so that tests and fault injectors can corrupt a valid message field by field.
+    """
+    arr = {}
+    for name, a in msg.arrays.items():
+        data = a.tobytes() if _LITTLE else a.astype(_F8).tobytes()
+        arr[name] = [list(a.shape), data]
+    wire: dict[str, Any] = {
+        _K_VERSION: msg.version,
+        _K_KIND: msg.kind,
+        _K_FROM: msg.sender,
+        _K_STAMP: msg.stamp,
+        _K_ARR: arr,
+    }
+    if msg.receiver is not None:
+        wire[_K_TO] = msg.receiver
+    if msg.meta:
+        wire[_K_META] = dict(msg.meta)
+    return wire
+
+
+def encode(
+    msg: Message,
+    *,
+    schema: Schema | Mapping[str, Mapping[str, Sequence[int | None]]] | None = None,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+) -> bytes:
+    """Encode ``msg`` to bytes.
+
+    Raises :class:`MessageError` if the message does not match ``schema`` (when given),
+    if an array was made non-finite after construction (``"nonfinite"``), or if the
+    encoding is larger than ``max_bytes`` (``"size"``): a sender fails loudly rather than
+    have every receiver drop its messages.
+    """
+    if not isinstance(msg, Message):
+        raise TypeError(f"encode expects a Message, got {type(msg).__name__}")
+    if schema is not None:
+        _as_schema(schema).check(msg)
+    for name, a in msg.arrays.items():
+        # Read-only arrays that own their data can be made writeable again; re-check.
+        if not _all_finite(a):
+            raise _fail("nonfinite", f"array {name!r} has non-finite values")
+    data = msgpack.packb(to_wire(msg), use_bin_type=True)
+    if len(data) > max_bytes:
+        raise _fail("size", f"encoded message is {len(data)} bytes, more than max_bytes={max_bytes}")
+    return data
+
+
+# ------------------------------------------------------------------------------- decode
+
+
+def decode(
+    data: bytes | bytearray | memoryview,
+    *,
+    schema: Schema | Mapping[str, Mapping[str, Sequence[int | None]]],
+    expected_sender: int | None = None,
+    expected_receiver: int | None = None,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+) -> Message:
+    """Decode untrusted bytes into a :class:`Message`, or raise :class:`MessageError`.
+
+    Parameters
+    ----------
+    data : bytes-like
+        The payload as received.
+    schema : Schema or mapping kind -> {name: shape}
+        The kinds accepted here and their array shapes (pass a prebuilt :class:`Schema`
+        in hot paths; a mapping is converted on every call).
+    expected_sender : int, optional
+        The sender the key expression implies (``ParsedKey.sender``); a message whose
+        ``from`` differs is rejected with reason ``"sender"``.
+    expected_receiver : int, optional
+        The receiver an addressed key implies (``ParsedKey.receiver``); a message whose
+        ``to`` differs (or is missing) is rejected with reason ``"sender"``.
+    max_bytes : int
+        Size cap, checked before anything is parsed (reason ``"size"``).
+
+    Every failure is a :class:`MessageError` whose ``reason`` is one of ``"size"``,
+    ``"decode"``, ``"type"``, ``"keys"``, ``"version"``, ``"sender"``, ``"shape"``,
+    ``"nonfinite"``; nothing else escapes for any input bytes.
+    """
+    schema = _as_schema(schema)
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise _fail("type", f"payload must be bytes, got {type(data).__name__}")
+    size = data.nbytes if isinstance(data, memoryview) else len(data)
+    if size > max_bytes:
+        raise _fail("size", f"payload is {size} bytes, more than max_bytes={max_bytes}")
+    try:
+        obj = msgpack.unpackb(
+            data,
+            raw=False,
+            strict_map_key=True,
+            use_list=True,
+            max_bin_len=max_bytes,
+            max_str_len=MAX_STR_LEN,
+            max_array_len=_MAX_ARRAY_LEN,
+            max_map_len=_MAX_MAP_LEN,
+            max_ext_len=0,
+        )
+    except Exception as exc:  # any failure to parse untrusted bytes is a decode error
+        raise _fail("decode", f"not a valid msgpack message: {type(exc).__name__}: {exc}"[:200]) from exc
+
+    if type(obj) is not dict:
+        raise _fail("type", f"message must be a map, got {type(obj).__name__}")
+    if _K_VERSION not in obj:
+        raise _fail("keys", "message has no version field 'v'")
+    version = obj[_K_VERSION]
+    if not _is_int(version) or version != VERSION:
+        raise _fail("version", f"unsupported version {version!r:.40} (this codec reads {VERSION})")
+    keys = obj.keys()
+    if not (keys >= _REQUIRED and keys <= _ALLOWED):
+        raise _fail(
+            "keys",
+            f"message keys {sorted(map(repr, keys))} (required {sorted(_REQUIRED)}, allowed {sorted(_ALLOWED)})"[:300],
+        )
+
+    kind = _check_kind(obj[_K_KIND])
+    fields = schema._kinds.get(kind)
+    if fields is None:
+        raise _fail("type", f"kind {kind!r} is not accepted here (expected {sorted(schema._kinds)})")
+    sender = _check_id(obj[_K_FROM], "sender")
+    if expected_sender is not None and sender != expected_sender:
+        raise _fail("sender", f"message claims sender {sender}, its key says {expected_sender}")
+    stamp = _check_stamp(obj[_K_STAMP])
+    receiver = obj.get(_K_TO)
+    if receiver is not None:
+        _check_id(receiver, "receiver")
+    elif _K_TO in obj:
+        raise _fail("type", "receiver must be an int, got None")
+    if expected_receiver is not None and receiver != expected_receiver:
+        raise _fail("sender", f"message is addressed to {receiver}, its key says {expected_receiver}")
+    meta = _check_meta(obj[_K_META]) if _K_META in obj else None
+
+    arr = obj[_K_ARR]
+    if type(arr) is not dict:
+        raise _fail("type", f"'arr' must be a map, got {type(arr).__name__}")
+    if arr.keys() != fields.keys():
+        raise _fail("keys", f"{kind!r} arrays {sorted(map(repr, arr))} != expected {sorted(fields)}"[:300])
+    arrays: dict[str, np.ndarray] = {}
+    for name, spec in fields.items():
+        arrays[name] = _decode_array(name, arr[name], spec)
+    return Message._trusted(kind, sender, stamp, arrays, receiver, dict(meta) if meta else {})
+
+
+def _decode_array(name: str, entry: object, spec: ShapeSpec) -> np.ndarray:
+    if type(entry) is not list or len(entry) != 2:
+        raise _fail("type", f"array {name!r} must be [shape, bytes]")
+    shape_list, raw = entry
+    if type(shape_list) is not list or type(raw) is not bytes:
+        raise _fail("type", f"array {name!r} must be [list of ints, bytes]")
+    count = 1
+    for d in shape_list:
+        if not _is_int(d) or not 0 <= d <= MAX_DIM:
+            raise _fail("type", f"array {name!r} has an invalid dimension {d!r:.40}")
+        count *= d
+    shape = tuple(shape_list)
+    _check_shape(name, shape, spec)
+    if len(raw) != 8 * count:
+        raise _fail("shape", f"array {name!r} has {len(raw)} bytes, shape {shape} needs {8 * count}")
+    # astype copies: the array owns its memory and is native-endian float64.
+    a = np.frombuffer(raw, dtype=_F8).reshape(shape).astype(np.float64)
+    if not _all_finite(a):
+        raise _fail("nonfinite", f"array {name!r} has non-finite values")
+    a.setflags(write=False)
+    return a
+

@@ -1,0 +1,290 @@
+"""Opening Zenoh sessions (zenoh-python 1.x): peer mode on loopback, or client of a router.
+
+Two deployments, one factory::
+
+    # peers on one machine (the default): no router, no multicast scouting; every
+    # process listens on its own loopback port and connects to the ports it is told
+    opts = SessionOptions.peer(listen_port=7451, connect_ports=[7450])
+    # across hosts: a client of a Zenoh router (zenohd) at HOST:PORT
+    opts = SessionOptions.client(["tcp/10.0.0.5:7447"])
+
+    with open_session(opts) as session:      # zenoh.Session; closed on every path
+        ...
+
+Multicast scouting is off, so two teams on one machine never find each other; gossip
+scouting stays on, so a peer that connects to one member of its team learns the others'
+(loopback) locators and the peers form a mesh. A peer's ``connect`` endpoints need not be
+up yet: Zenoh retries them in the background. A client whose router is unreachable fails
+at once with :class:`~estimation.errors.TransportError`.
+
+A session left open keeps Zenoh's non-daemon callback threads alive and hangs the
+interpreter at exit. Every session opened here is therefore also closed by a hook that
+runs *before* the interpreter joins its threads (``threading._register_atexit``, the
+hook ``concurrent.futures`` uses); this is a safety net, not a substitute for ``with``.
+"""
+
+from __future__ import annotations
+
+import atexit
+import json
+import logging
+import re
+import socket
+import threading
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence
+
+import zenoh
+
+from estimation.errors import TransportError
+
+__all__ = [
+    "LOOPBACK",
+    "MODES",
+    "SessionOptions",
+    "free_tcp_port",
+    "tcp_endpoint",
+    "normalize_endpoint",
+    "make_config",
+    "open_session",
+    "close_session",
+]
+
+log = logging.getLogger(__name__)
+
+LOOPBACK = "127.0.0.1"
+MODES = frozenset({"peer", "client", "router"})
+_ENDPOINT_RE = re.compile(r"(tcp|udp|tls|quic|ws|unixsock-stream)/[^\s\"'\\]+\Z")
+
+
+def free_tcp_port(host: str = LOOPBACK) -> int:
+    """A TCP port on ``host`` that was free a moment ago (bind to port 0, close).
+
+    Another process may take it before it is used; a launcher that starts several
+    processes should pick all ports first and treat "address in use" at open time as a
+    retryable :class:`TransportError`.
+    """
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def tcp_endpoint(port: int, host: str = LOOPBACK) -> str:
+    """``tcp/HOST:PORT`` (IPv6 hosts in brackets)."""
+    if type(port) is not int or not 0 <= port <= 65535:
+        raise ValueError(f"port must be an int in [0, 65535], got {port!r}")
+    if ":" in host and not host.startswith("["):
+        host = f"[{host}]"
+    return f"tcp/{host}:{port}"
+
+
+def normalize_endpoint(endpoint: str) -> str:
+    """Validate a Zenoh endpoint; ``HOST:PORT`` without a protocol means ``tcp/HOST:PORT``.
+
+    Raises ``ValueError`` naming the endpoint and the expected form.
+    """
+    if not isinstance(endpoint, str):
+        raise ValueError(f"endpoint must be a str like 'tcp/HOST:PORT', got {endpoint!r}")
+    ep = endpoint.strip()
+    if "/" not in ep:
+        ep = f"tcp/{ep}"
+    if not _ENDPOINT_RE.match(ep):
+        raise ValueError(f"invalid Zenoh endpoint {endpoint!r}: expected e.g. 'tcp/127.0.0.1:7447'")
+    if ep.startswith(("tcp/", "udp/")) and not re.search(r":\d{1,5}(\?.*|#.*)?\Z", ep):
+        raise ValueError(f"invalid Zenoh endpoint {endpoint!r}: expected a port, e.g. 'tcp/HOST:7447'")
+    return ep
+
+
+@dataclass(frozen=True)
+class SessionOptions:
+    """How to open a session; picklable, so a launcher can hand it to spawned children.
+
+    Attributes
+    ----------
+    mode : {"peer", "client", "router"}
+        ``peer`` (default, no router needed), ``client`` (through a router) or
+        ``router`` (mostly for tests that need a router without installing zenohd).
+    listen : tuple of str
+        Endpoints to listen on. ``None`` means: a peer or router listens on
+        ``tcp/127.0.0.1:0`` (loopback, a port chosen by the OS); a client listens on
+        nothing.
+    connect : tuple of str
+        Endpoints of peers or routers to connect to (required for a client).
+    multicast_scouting : bool
+        Off by default: teams on one machine must not discover each other.
+    """
+
+    mode: str = "peer"
+    listen: tuple[str, ...] | None = None
+    connect: tuple[str, ...] = field(default_factory=tuple)
+    multicast_scouting: bool = False
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {sorted(MODES)}, got {self.mode!r}")
+        if self.listen is not None:
+            object.__setattr__(self, "listen", tuple(normalize_endpoint(e) for e in _seq(self.listen, "listen")))
+        object.__setattr__(self, "connect", tuple(normalize_endpoint(e) for e in _seq(self.connect, "connect")))
+        if self.mode == "client" and not self.connect:
+            raise ValueError("client mode needs at least one router endpoint in connect (e.g. tcp/HOST:7447)")
+        if self.mode == "client" and self.listen:
+            raise ValueError("a client does not listen; leave listen empty")
+
+    @classmethod
+    def peer(
+        cls,
+        *,
+        listen_port: int | None = None,
+        connect_ports: Iterable[int] = (),
+        connect: Iterable[str] = (),
+        host: str = LOOPBACK,
+    ) -> "SessionOptions":
+        """Peer on loopback: listen on ``host:listen_port`` (``None``: an OS-chosen port),
+        connect to ``host:p`` for each of ``connect_ports`` and to the ``connect`` endpoints.
+        """
+        listen = (tcp_endpoint(listen_port if listen_port is not None else 0, host),)
+        eps = tuple(tcp_endpoint(p, host) for p in connect_ports) + tuple(connect)
+        return cls(mode="peer", listen=listen, connect=eps)
+
+    @classmethod
+    def client(cls, connect: Iterable[str]) -> "SessionOptions":
+        """Client of the router(s) at ``connect`` (``tcp/HOST:PORT``, or ``HOST:PORT``)."""
+        return cls(mode="client", listen=(), connect=tuple(connect))
+
+    def effective_listen(self) -> tuple[str, ...]:
+        """The listen endpoints actually configured (see ``listen``)."""
+        if self.listen is not None:
+            return self.listen
+        return () if self.mode == "client" else (tcp_endpoint(0),)
+
+    def to_config(self) -> zenoh.Config:
+        """The ``zenoh.Config`` for these options (see :func:`make_config`)."""
+        return make_config(
+            mode=self.mode,
+            listen=self.effective_listen(),
+            connect=self.connect,
+            multicast_scouting=self.multicast_scouting,
+        )
+
+
+def _seq(value: object, what: str) -> Sequence[str]:
+    if isinstance(value, str) or not isinstance(value, Iterable):
+        raise ValueError(f"{what} must be a sequence of endpoints, got {value!r}")
+    return tuple(value)  # type: ignore[arg-type]
+
+
+def make_config(
+    *,
+    mode: str = "peer",
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    multicast_scouting: bool = False,
+) -> zenoh.Config:
+    """Build a ``zenoh.Config`` with ``zenoh.Config()`` + ``insert_json5``.
+
+    Sets ``mode``, ``listen/endpoints``, ``connect/endpoints`` and
+    ``scouting/multicast/enabled`` (the keys of Zenoh's ``DEFAULT_CONFIG.json5``);
+    everything else keeps Zenoh's defaults. Values are written with ``json.dumps`` (JSON
+    is JSON5), so no endpoint string can inject configuration.
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {sorted(MODES)}, got {mode!r}")
+    listen = [normalize_endpoint(e) for e in _seq(listen, "listen")]
+    connect = [normalize_endpoint(e) for e in _seq(connect, "connect")]
+    conf = zenoh.Config()
+    try:
+        conf.insert_json5("mode", json.dumps(mode))
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    except Exception as exc:  # zenoh.ZError: an endpoint Zenoh itself does not accept
+        raise ValueError(f"invalid Zenoh configuration: {exc}") from exc
+    return conf
+
+
+# Sessions opened here and not yet known to be closed (see the module docstring).
+_open_sessions: list[zenoh.Session] = []
+_open_lock = threading.Lock()
+
+
+def open_session(options: SessionOptions | zenoh.Config | None = None) -> zenoh.Session:
+    """Open a Zenoh session; use it as a context manager (``with open_session(...) as s``).
+
+    Parameters
+    ----------
+    options : SessionOptions or zenoh.Config, optional
+        ``None`` means ``SessionOptions()``: a peer on loopback with an OS-chosen port,
+        no multicast scouting, connected to nobody.
+
+    Raises
+    ------
+    TransportError
+        Zenoh could not open the session (a listen port already in use, a router that
+        cannot be reached in client mode, ...); the message names the endpoints.
+    """
+    if options is None:
+        options = SessionOptions()
+    if isinstance(options, SessionOptions):
+        config = options.to_config()
+        where = f"mode={options.mode} listen={list(options.effective_listen())} connect={list(options.connect)}"
+    elif isinstance(options, zenoh.Config):
+        config, where = options, "the given zenoh.Config"
+    else:
+        raise TypeError(f"open_session expects SessionOptions or zenoh.Config, got {type(options).__name__}")
+    try:
+        session = zenoh.open(config)
+    except Exception as exc:  # zenoh.ZError (subclass of Exception only)
+        raise TransportError(f"cannot open a Zenoh session ({where}): {exc}") from exc
+    with _open_lock:
+        _open_sessions[:] = [s for s in _open_sessions if not s.is_closed()]
+        _open_sessions.append(session)
+    log.debug("zenoh session %s opened (%s)", session.zid(), where)
+    return session
+
+
+def close_session(session: zenoh.Session | None) -> None:
+    """Close ``session`` if it is open; never raises (a failure is logged).
+
+    For ``finally`` blocks and shutdown paths where a second error would hide the first.
+    """
+    if session is None:
+        return
+    try:
+        if not session.is_closed():
+            session.close()
+    except Exception:
+        log.exception("closing a zenoh session failed")
+    with _open_lock:
+        try:
+            _open_sessions.remove(session)
+        except ValueError:
+            pass
+
+
+def _close_all_at_exit() -> None:
+    with _open_lock:
+        sessions, _open_sessions[:] = list(_open_sessions), []
+    for s in sessions:
+        try:
+            if not s.is_closed():
+                log.warning("closing a zenoh session left open at interpreter exit")
+                s.close()
+        except Exception:
+            log.exception("closing a zenoh session at exit failed")
+
+
+def _register_exit_hook() -> None:
+    # threading._register_atexit runs before threading._shutdown() joins non-daemon
+    # threads (plain atexit hooks run after, too late). CPython-private, hence the fallback.
+    register = getattr(threading, "_register_atexit", None)
+    if register is not None:
+        try:
+            register(_close_all_at_exit)
+            return
+        except RuntimeError:  # interpreter already shutting down
+            pass
+    atexit.register(_close_all_at_exit)
+
+
+_register_exit_hook()
