@@ -18,11 +18,12 @@ diagonalises ``A`` and every measurement column keeps its meaning per mode; whet
 seen together by one sensing location are distinguishable is checked where it matters, in
 the observer design (:mod:`estimation.switched_observer`).
 
-Normalisation: symmetric blocks use ``eigh`` (orthonormal eigenvectors); other blocks
-use ``eig`` with unit 2-norm columns. The largest-magnitude entry of every eigenvector is
-made positive. Within a block the modes are ordered by decreasing eigenvalue; blocks
-appear in the order of their smallest state index, so a diagonal ``A`` keeps its state
-order (``V = I``).
+Normalisation: the eigen-decomposition runs on every connected component of the
+sparsity pattern (inside each given block); symmetric components use ``eigh``
+(orthonormal eigenvectors), others ``eig`` with unit 2-norm columns. The largest-magnitude
+entry of every eigenvector is made positive. Within a component the modes are ordered by
+decreasing eigenvalue; components appear in the order of their smallest state index, so
+a diagonal ``A`` keeps its state order (``V = I``).
 """
 
 from __future__ import annotations
@@ -181,14 +182,17 @@ def modal_form(A: np.ndarray, *, blocks: Sequence[Sequence[int]] | None = None) 
     lam = np.zeros(n)
     block_of_mode = np.zeros(n, dtype=int)
     start = 0
-    for b, idx in enumerate(parts):
-        lb, vb = _block_eig(A[np.ix_(idx, idx)], where=f"block {b} (states {idx[0]}..{idx[-1]})")
-        modes = np.arange(start, start + idx.size)
-        lam[modes] = lb
-        V[np.ix_(idx, modes)] = vb
-        W[np.ix_(modes, idx)] = np.linalg.inv(vb)
-        block_of_mode[modes] = b
-        start += idx.size
+    for b, part in enumerate(parts):
+        # a given block may itself split into decoupled pieces (e.g. a diagonal cell)
+        for sub in decoupled_blocks(A[np.ix_(part, part)]):
+            idx = part[sub]
+            lb, vb = _block_eig(A[np.ix_(idx, idx)], where=f"block {b} (states {part[0]}..{part[-1]})")
+            modes = np.arange(start, start + idx.size)
+            lam[modes] = lb
+            V[np.ix_(idx, modes)] = vb
+            W[np.ix_(modes, idx)] = np.linalg.inv(vb)
+            block_of_mode[modes] = b
+            start += idx.size
     for arr in (lam, V, W, block_of_mode):
         arr.setflags(write=False)
     return ModalForm(lam=lam, V=V, W=W, block_of_mode=block_of_mode, blocks=parts)
