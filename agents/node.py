@@ -37,6 +37,8 @@ class AgentNode:
         self.links: dict[int, LinkCounters] = {j: LinkCounters() for j in in_neighbours}
         self.round: int | None = None
         self._perfect = channel.perfect
+        #: Byzantine middleware (None for an honest agent): ``strategy(k, estimate, node)``
+        self.strategy = None
 
     def receive(self, sender: int, stamp: int, value: np.ndarray) -> None:
         """A message from ``sender`` stamped ``stamp`` reached this agent."""
@@ -67,8 +69,21 @@ class AgentNode:
                     self.inbox[r.sender] = r
 
     def run_round(self, k: int, measurement: np.ndarray | None) -> np.ndarray:
-        """Run round ``k``; returns the outgoing payload (the estimate of ``x[k]``)."""
+        """Run round ``k``; returns the agent's own estimate of ``x[k]`` (what the monitor
+        records). What goes on the network is :meth:`publish`'s business."""
         if self._pending:
             self._release(k)
         self.round = k
         return self.estimator.step(k, measurement, self.inbox)
+
+    def publish(self, k: int, estimate: np.ndarray) -> np.ndarray | dict[int, np.ndarray | None]:
+        """What this agent sends in round ``k``.
+
+        Returns the estimate itself for a broadcast to every out-neighbour (an honest
+        agent), or a mapping ``receiver id -> payload`` for addressed messages, where a
+        missing receiver or ``None`` means nothing is sent to it (a Byzantine strategy may
+        equivocate or omit). Both drivers call this after :meth:`run_round`.
+        """
+        if self.strategy is None:
+            return estimate
+        return self.strategy(k, estimate, self)

@@ -91,8 +91,15 @@ def simulate(
         y = plant.measure(k)
         for i, node in enumerate(nodes):
             est_out[i] = out = node.run_round(k, y[rows[i]])
-            for tgt in targets[i]:
-                tgt.receive(ids[i], k, out)
+            msg = node.publish(k, out) if node.strategy is not None else out
+            if isinstance(msg, dict):
+                for tgt in targets[i]:
+                    payload = msg.get(tgt.id)
+                    if payload is not None:
+                        tgt.receive(ids[i], k, payload)
+            else:
+                for tgt in targets[i]:
+                    tgt.receive(ids[i], k, msg)
         x = plant.x
         if record:
             mon.record(k, x, est_out)

@@ -57,9 +57,7 @@ from .modal import ModalForm, modal_form
 from .patrols import Patrol, PatrolSchedule
 from .robustness import Medag, build_medag
 from .switched_observer import AgentObservers, design_agent_observers, observer_step, source_sets
-from .trimmed_mean import average, median, trimmed_mean
-
-FUSIONS = ("trimmed", "median", "average")
+from .trimmed_mean import FUSIONS, fuse, fuse_block
 
 
 @dataclass(frozen=True, eq=False)
@@ -197,36 +195,6 @@ def compensate(values: np.ndarray, stamps: np.ndarray, *, k: int, lam: np.ndarra
     delay = np.maximum((k - 1) - np.asarray(stamps), 0)
     with np.errstate(over="ignore", invalid="ignore"):
         return values * np.asarray(lam)[:, None] ** delay[..., None, :]
-
-
-def fuse(values: np.ndarray, *, fusion: str, f: int) -> np.ndarray:
-    """Fused value per row of ``values (..., F, d)`` (NaN = missing); NaN if too few present."""
-    if fusion == "trimmed":
-        return trimmed_mean(values, f=f, short="nan")
-    if fusion == "median":
-        return median(values, f=f, short="nan")
-    if fusion == "average":
-        return average(values, short="nan")
-    raise DesignError(f"unknown fusion {fusion!r}; expected one of {', '.join(FUSIONS)}")
-
-
-def fuse_block(block: np.ndarray, *, fusion: str, f: int) -> np.ndarray:
-    """Fuse a complete block ``(d, g)`` column-wise (no missing values): ``(g,)``.
-
-    The fast path of :func:`fuse` for ``d`` neighbours that all delivered; ``d >= 2f + 1``
-    (``>= 1`` for ``"average"``) is the caller's responsibility.
-    """
-    d = block.shape[0]
-    if fusion == "trimmed":
-        if f == 0:
-            return block.sum(axis=0) / d
-        return np.sort(block, axis=0)[f : d - f].sum(axis=0) / (d - 2 * f)
-    if fusion == "median":
-        srt = np.sort(block, axis=0)
-        return srt[d // 2] if d % 2 else 0.5 * (srt[d // 2 - 1] + srt[d // 2])
-    if fusion == "average":
-        return block.sum(axis=0) / d
-    raise DesignError(f"unknown fusion {fusion!r}; expected one of {', '.join(FUSIONS)}")
 
 
 def lfre_update(z_prev: np.ndarray, fused: np.ndarray, lam: np.ndarray, *, gap: int = 1) -> np.ndarray:

@@ -19,6 +19,8 @@ import numpy as np
 from .errors import DesignError
 
 _SHORT = ("raise", "nan")
+#: names of the fusion rules of :func:`fuse` / :func:`fuse_block`
+FUSIONS = ("trimmed", "median", "average")
 
 
 def _check_f(f: int) -> int:
@@ -143,3 +145,33 @@ def average(values: np.ndarray, *, weights: np.ndarray | None = None, axis: int 
     Mitra et al.; one adversarial value moves it arbitrarily.
     """
     return trimmed_mean(values, f=0, weights=weights, axis=axis, short=short)
+
+
+def fuse(values: np.ndarray, *, fusion: str, f: int) -> np.ndarray:
+    """Fused value per row of ``values (..., F, d)`` (NaN = missing); NaN if too few present."""
+    if fusion == "trimmed":
+        return trimmed_mean(values, f=f, short="nan")
+    if fusion == "median":
+        return median(values, f=f, short="nan")
+    if fusion == "average":
+        return average(values, short="nan")
+    raise DesignError(f"unknown fusion {fusion!r}; expected one of {', '.join(FUSIONS)}")
+
+
+def fuse_block(block: np.ndarray, *, fusion: str, f: int) -> np.ndarray:
+    """Fuse a complete block ``(d, g)`` column-wise (no missing values): ``(g,)``.
+
+    The fast path of :func:`fuse` for ``d`` neighbours that all delivered; ``d >= 2f + 1``
+    (``>= 1`` for ``"average"``) is the caller's responsibility.
+    """
+    d = block.shape[0]
+    if fusion == "trimmed":
+        if f == 0:
+            return block.sum(axis=0) / d
+        return np.sort(block, axis=0)[f : d - f].sum(axis=0) / (d - 2 * f)
+    if fusion == "median":
+        srt = np.sort(block, axis=0)
+        return srt[d // 2] if d % 2 else 0.5 * (srt[d // 2 - 1] + srt[d // 2])
+    if fusion == "average":
+        return block.sum(axis=0) / d
+    raise DesignError(f"unknown fusion {fusion!r}; expected one of {', '.join(FUSIONS)}")
