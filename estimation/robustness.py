@@ -261,8 +261,8 @@ def attachment_graph(
 
     The ``initial`` agents (default ``0..r-1``) form a clique; agents are then added in
     increasing id order, each joined (both directions) to ``r`` distinct earlier agents,
-    chosen with probability proportional to degree (``preferential``, as in a
-    Barabasi-Albert process) or uniformly. Every agent outside ``initial`` then has ``r``
+    chosen with probability proportional to ``degree + 1`` (``preferential``, as in a
+    Barabasi-Albert process) or uniformly, from the ``rng`` passed in. Every agent outside ``initial`` then has ``r``
     in-neighbours added before it, so the graph is strongly ``r``-robust w.r.t. any
     source set containing ``initial`` (use ``r = 3f + 1`` for Theorem 2 with ``m = 3``).
 
