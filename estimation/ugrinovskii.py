@@ -22,8 +22,9 @@ Discretisation at the round step ``dt`` (round ``k`` is ``t_k = k dt``; ``step(k
 advances from ``t_{k-1}`` to ``t_k``):
 
 * Riccati equations: exact flow map, :class:`estimation.hinf_riccati.RiccatiFlow`.
-* Node dynamics (stiff: eigenvalues of the local matrix to about ``-300`` for the
-  example's backed-off design, to ``-1e5`` at the unbacked optimum): exponential
+* Node dynamics (stiff: eigenvalues of the local 14 x 14 matrix down to about ``-2400``
+  at ``t = 0`` for the example's 5 %-backed-off design, far lower at the unbacked
+  optimum; an explicit scheme would need ``dt < 1e-3``): exponential
   integrator with zero-order hold. Over ``[t_{k-1}, t_k)`` the gains are frozen at their
   value at ``t_{k-1}``, and the inputs -- measurement ``y_i[k]``, the newest neighbour
   payloads (stamped ``k - 1`` when fresh), attack ``f(t_{k-1})`` -- are held; the linear
@@ -31,7 +32,10 @@ advances from ``t_{k-1}`` to ``t_k``):
   ``[[M, G], [0, 0]] dt`` (Van Loan), which is stable at any ``dt``. The exponential is
   recomputed only when a Riccati solution has moved by more than ``gain_rtol`` (relative,
   Frobenius) since the last recomputation (default ``1e-3``), so the gains used lag the
-  exact ones by at most that relative amount. Neighbour coupling is explicit (one round old).
+  exact ones by at most that relative amount. Neighbour coupling is explicit (one round
+  old), so the scheme is first order in ``dt``: for the example, ``dt = 5e-3`` against
+  ``dt = 1.25e-3`` changes the peak attack-induced error by < 2 % and ``u`` by < 1e-3 of
+  the attack amplitude (tests/estimation/test_ugrinovskii_observer.py).
 * Missing data: no measurement (``None``) replaces ``y`` by the prediction ``C x_hat``
   (zero innovation at the start of the step); a neighbour absent from the inbox keeps its
   newest earlier payload; one never heard from contributes zero innovation
