@@ -92,5 +92,10 @@ class Monitor:
         return float(np.nanmax(self.error_inf[k])) if k >= 0 else float("nan")
 
     def metric(self, name: str) -> np.ndarray:
+        """``(rounds, agents, blocks)`` array of a metric; ``error_ratio`` is ``error_2``
+        divided by the agent's ``error_2`` at round 0 (the decay of the initial error)."""
         self.flush()
+        if name == "error_ratio":
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return self.error_2 / self.error_2[:1]
         return {"error_2": self.error_2, "error_inf": self.error_inf, "relative_error_2": self.relative_error_2}[name]

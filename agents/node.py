@@ -28,10 +28,18 @@ class AgentNode:
     in_neighbours : ids this agent accepts estimates from (others are rejected, counted)
     """
 
-    def __init__(self, agent_id: int, estimator: Any, channel: Channel, in_neighbours: list[int]) -> None:
+    def __init__(self, agent_id: int, estimator: Any, channel: Channel, in_neighbours: list[int],
+                 *, index_of: dict[int, int] | None = None, out_neighbours: list[int] | None = None) -> None:
         self.id = agent_id
         self.estimator = estimator
         self.channel = channel
+        #: agent id -> index (the estimation layer numbers agents 0..N-1, as the graph does)
+        self.index_of = index_of if index_of is not None else {j: j for j in in_neighbours}
+        self.out_neighbours = list(out_neighbours or [])
+        #: what an omniscient adversary may read (set by the driver for Byzantine agents)
+        self.view: Any = None
+        #: the estimate itself is the payload (no separate ``estimator.estimate`` call)
+        self.payload_is_estimate = bool(getattr(estimator, "payload_is_estimate", False))
         self.inbox: dict[int, Received] = {}
         self._pending: dict[int, list[Received]] = {}
         self.links: dict[int, LinkCounters] = {j: LinkCounters() for j in in_neighbours}
@@ -53,7 +61,7 @@ class AgentNode:
         c.delivered += 1
         if when > stamp + 1:
             c.late += 1
-        self._pending.setdefault(when, []).append(Received(sender, stamp, value))
+        self._pending.setdefault(when, []).append(Received(self.index_of[sender], stamp, value))
 
     def reject(self, sender: int) -> None:
         """Count a message from ``sender`` that failed validation."""
@@ -69,12 +77,26 @@ class AgentNode:
                     self.inbox[r.sender] = r
 
     def run_round(self, k: int, measurement: np.ndarray | None) -> np.ndarray:
-        """Run round ``k``; returns the agent's own estimate of ``x[k]`` (what the monitor
-        records). What goes on the network is :meth:`publish`'s business."""
+        """Run round ``k``; returns the payload the estimator publishes, stamped ``k``.
+
+        The agent's estimate of ``x[k]`` (what the monitor records) is :meth:`estimate`.
+        What goes on the network is :meth:`publish`'s business. The inbox is keyed by the
+        in-neighbours' agent *indices* (``Received.sender`` likewise).
+        """
         if self._pending:
             self._release(k)
         self.round = k
         return self.estimator.step(k, measurement, self.inbox)
+
+    def estimate(self, payload: np.ndarray) -> np.ndarray:
+        """The estimate of ``x[k]`` after :meth:`run_round` returned ``payload``."""
+        return payload if self.payload_is_estimate else self.estimator.estimate
+
+    def pending_from_others(self, k: int, exclude: int) -> list[Received]:
+        """Messages stamped ``k`` that will be visible in round ``k + 1``, other than
+        ``exclude``'s (the omniscient adversary's view of this receiver)."""
+        ex = self.index_of.get(exclude)
+        return [r for r in self._pending.get(k + 1, []) if r.stamp == k and r.sender != ex]
 
     def publish(self, k: int, estimate: np.ndarray) -> np.ndarray | dict[int, np.ndarray | None]:
         """What this agent sends in round ``k``.

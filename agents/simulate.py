@@ -20,6 +20,7 @@ from typing import Callable
 import numpy as np
 
 from scenarios.build import Experiment
+from transport.byzantine import Forged
 from transport.channel import Channel, loss_windows
 
 from .monitor import Monitor
@@ -38,10 +39,54 @@ def make_channel(exp: Experiment) -> Channel:
 
 
 def make_nodes(exp: Experiment, channel: Channel) -> list[AgentNode]:
-    return [
-        AgentNode(aid, exp.make_estimator(i), channel, [exp.agent_ids[j] for j in exp.in_neighbours(i)])
-        for i, aid in enumerate(exp.agent_ids)
-    ]
+    index_of = {aid: i for i, aid in enumerate(exp.agent_ids)}
+    nodes = []
+    for i, aid in enumerate(exp.agent_ids):
+        node = AgentNode(aid, exp.make_estimator(i), channel, [exp.agent_ids[j] for j in exp.in_neighbours(i)],
+                         index_of=index_of, out_neighbours=[exp.agent_ids[j] for j in exp.out_neighbours(i)])
+        node.strategy = exp.strategies.get(i)
+        nodes.append(node)
+    return nodes
+
+
+class SimulatorView:
+    """The omniscient adversary's view in the simulator: every message of the round.
+
+    Byzantine agents run after the regular ones in each round, so the messages the
+    regular agents sent in round ``k`` are known when an adversary computes its own.
+    A receiver's estimator may say which payload components a sender's value feeds
+    (``uses(sender_index) -> bool mask``, e.g. per-mode MEDAG neighbours); the others are
+    zeroed.
+    """
+
+    def __init__(self, nodes: list[AgentNode]) -> None:
+        self._by_id = {n.id: n for n in nodes}
+        self.k = 0
+
+    def others_for(self, receiver: int, sender: int) -> list[np.ndarray]:
+        node = self._by_id[receiver]
+        uses = getattr(node.estimator, "uses", None)
+        out = []
+        for r in node.pending_from_others(self.k, sender):
+            v = np.asarray(r.value, dtype=float)
+            out.append(v * uses(r.sender) if uses is not None else v)
+        return out
+
+
+def deliver(node: AgentNode, k: int, msg, targets: list[AgentNode]) -> None:
+    """Hand ``node``'s round-``k`` message(s) to its out-neighbours."""
+    if isinstance(msg, dict):
+        for tgt in targets:
+            payload = msg.get(tgt.id)
+            if payload is None:
+                continue
+            if isinstance(payload, Forged):
+                tgt.receive(node.id, payload.stamp, payload.value)
+            else:
+                tgt.receive(node.id, k, payload)
+    else:
+        for tgt in targets:
+            tgt.receive(node.id, k, msg)
 
 
 @dataclass
@@ -80,26 +125,32 @@ def simulate(
     mon = Monitor(exp)
     K = exp.n_rounds
     N, n = exp.N, exp.n
-    rows = exp.agent_rows
     targets = [[nodes[j] for j in exp.out_neighbours(i)] for i in range(N)]
-    ids = exp.agent_ids
+    # regular agents first, Byzantine ones last (they may read the round's messages)
+    order = [i for i in range(N) if i not in exp.byzantine] + sorted(exp.byzantine)
+    view = SimulatorView(nodes)
+    for i in exp.byzantine:
+        nodes[i].view = view
+    static = exp.static
+    rows = exp.agent_rows
     est_out = np.empty((N, n))
     traj = np.empty((K + 1, N, n)) if keep_trajectories else None
     truth = np.empty((K + 1, n)) if keep_trajectories else None
     t0 = time.perf_counter()
     for k in range(K + 1):
         y = plant.measure(k)
-        for i, node in enumerate(nodes):
-            est_out[i] = out = node.run_round(k, y[rows[i]])
-            msg = node.publish(k, out) if node.strategy is not None else out
-            if isinstance(msg, dict):
-                for tgt in targets[i]:
-                    payload = msg.get(tgt.id)
-                    if payload is not None:
-                        tgt.receive(ids[i], k, payload)
+        view.k = k
+        for i in order:
+            node = nodes[i]
+            if static:
+                meas = y[rows[i]]
             else:
-                for tgt in targets[i]:
-                    tgt.receive(ids[i], k, msg)
+                r = exp.rows_at(i, k)
+                meas = None if r is None else y[r]
+            out = node.run_round(k, meas)
+            est_out[i] = node.estimate(out)
+            msg = node.publish(k, out) if node.strategy is not None else out
+            deliver(node, k, msg, targets[i])
         x = plant.x
         if record:
             mon.record(k, x, est_out)

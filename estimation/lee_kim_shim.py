@@ -222,6 +222,9 @@ class LeeKimShim:
     max_degree : int, the largest number of neighbours whose messages can be used
     """
 
+    #: the published payload is the estimate ``x_hat_i[k]`` itself
+    payload_is_estimate = True
+
     def __init__(
         self,
         des: LKSDesign,

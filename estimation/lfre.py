@@ -247,13 +247,31 @@ class _ModalFusion:
         self._mem_stamp = np.zeros(len(nb), dtype=np.int64)
         self._mem_has = np.zeros(len(nb), dtype=bool)
 
+    def uses(self, sender: int) -> np.ndarray:
+        """``(n,)`` 0/1 mask of the payload components (modes) for which this agent fuses
+        ``sender``'s value (``sender`` in ``N_i^(j)`` of mode ``j``'s MEDAG). Read-only."""
+        cache = self.__dict__.setdefault("_uses", {})
+        mask = cache.get(sender)
+        if mask is None:
+            mask = np.zeros(self.design.n)
+            for j in self._F:
+                if sender in self.design.medags[int(j)].neighbours[self.agent]:
+                    mask[j] = 1.0
+            mask.flags.writeable = False
+            cache[sender] = mask
+        return mask
+
     def _obs_modes_flat(self) -> np.ndarray:
         return np.concatenate([o.modes for o in self._obs.observers]) if self._obs.observers else np.zeros(0, dtype=int)
 
     @property
     def estimate(self) -> np.ndarray:
         """``x_hat_i[k] = V z_hat_i[k]``, shape ``(n,)`` (a new array)."""
-        return self.design.modal.V @ self._z
+        eye = self.__dict__.get("_V_is_eye")
+        if eye is None:
+            V = self.design.modal.V
+            eye = self.__dict__["_V_is_eye"] = bool(np.array_equal(V, np.eye(V.shape[0])))
+        return self._z.copy() if eye else self.design.modal.V @ self._z
 
     @property
     def modal_estimate(self) -> np.ndarray:

@@ -15,7 +15,12 @@ from typing import Any, Callable
 import numpy as np
 
 from estimation import graphs
+from estimation import cells as cell_models
+from estimation import lfre
 from estimation.attacks import SensorAttackSignal
+from estimation.mss import effective_erasure_probability, max_erasure_probability, mss_margin, robustness_multiplier
+from estimation.patrols import Patrol, PatrolSchedule, cell_patrols
+from estimation.robustness import attachment_graph, cell_graph, strong_robustness
 from estimation.errors import DesignError, ScenarioError
 from estimation.lee_kim_shim import LeeKimShim, LKSDesign, design as lks_design, theorem3_bound
 from estimation.lti import ContinuousLTI, three_inertia, zoh
@@ -31,6 +36,8 @@ STREAM_PLANT_X0 = 1
 STREAM_AGENT_X0 = 2
 STREAM_SENSOR_ATTACK = 3
 STREAM_CHANNEL = 4
+STREAM_MAP = 6
+STREAM_GRAPH = 7
 
 
 def rng_for(seed: int, tag: int, *index: int) -> np.random.Generator:
@@ -61,7 +68,14 @@ class Experiment:
     blocks: dict[str, np.ndarray]
     sensor_attacks: list[SensorAttackSignal]
     lks: LKSDesign | None = None
+    mitra: "lfre.MitraDesign | None" = None
     byzantine: set[int] = field(default_factory=set)  # agent indices
+    strategies: dict[int, Any] = field(default_factory=dict)  # agent index -> Byzantine strategy
+    discrete: bool = False
+    positions: np.ndarray | None = None  # (banks, 2) map positions of the sensing locations
+    patrols: list[Patrol | None] = field(default_factory=list)  # per agent (None: static)
+    schedules: list[PatrolSchedule | None] = field(default_factory=list)
+    cell_of_location: np.ndarray | None = None
 
     # ------------------------------------------------------------------ derived
     @property
@@ -96,9 +110,23 @@ class Experiment:
     def out_neighbours(self, i: int) -> list[int]:
         return [int(j) for j in np.flatnonzero(self.Adj[:, i])]
 
+    def rows_at(self, i: int, k: int) -> np.ndarray | None:
+        """Rows of the stacked ``y`` agent ``i`` reads in round ``k`` (None: commuting)."""
+        sched = self.schedules[i] if self.schedules else None
+        if sched is None:
+            return self.agent_rows[i]
+        loc = sched.location(k)
+        return None if loc is None else self.bank_rows[loc]
+
+    @property
+    def static(self) -> bool:
+        return not any(s is not None for s in self.schedules)
+
     def make_estimator(self, i: int):
         """A fresh estimator for agent index ``i`` (its initial estimate is seeded)."""
         est = self.scenario.estimator
+        if est.algorithm == "lfre":
+            return lfre.make_estimator(self.mitra, agent=i, rule=est.rule)
         if est.algorithm == "lee_kim_shim":
             x0 = init_vector(est.x0, self.n, rng_for(self.seed, STREAM_AGENT_X0, i), where="estimator.x0")
             return LeeKimShim(
@@ -144,8 +172,63 @@ def _matrix(rows: Any, where: str, source: str, *, cols: int | None = None, nrow
     return M
 
 
-def _plant(sc: Scenario, source: str) -> ContinuousLTI:
+@dataclass
+class PlantModel:
+    """The plant as built from ``[plant]`` and ``[[sensors]]``."""
+
+    lti: ContinuousLTI
+    discrete: bool
+    positions: np.ndarray | None = None
+    x0: np.ndarray | None = None  # the model's own initial state
+    blocks: dict[str, np.ndarray] = field(default_factory=dict)
+    cell_of_location: np.ndarray | None = None
+
+
+_CELL_PARAMS = {
+    "cells": {"K": 4, "states": 20, "lam_low": 0.5, "lam_high": 1.2, "cell_size": 30.0},
+    "diffusion": {"K": 4, "locations": 10, "eps": 0.01, "radius": 15.0, "cell_size": 30.0},
+}
+
+
+def _cell_plant(sc: Scenario, source: str) -> PlantModel:
     pl = sc.plant
+    allowed = _CELL_PARAMS[pl.model]
+    unknown = set(pl.params) - set(allowed)
+    if unknown:
+        raise ScenarioError(f"plant.params: unknown parameter(s) {sorted(unknown)}; expected some of {sorted(allowed)}", source=source)
+    if pl.A is not None or pl.B is not None:
+        raise ScenarioError(f"plant: A and B are given by model {pl.model!r}", source=source)
+    if pl.time == "continuous":
+        raise ScenarioError(f"plant.time: model {pl.model!r} is a discrete-time plant", source=source)
+    p = {**allowed, **pl.params}
+    for key in ("K", "states", "locations"):
+        if key in p and (p[key] != int(p[key]) or p[key] < 1):
+            raise ScenarioError(f"plant.params.{key}: expected a positive integer, got {p[key]}", source=source)
+    rng = rng_for(sc.run.seed, STREAM_MAP)
+    try:
+        if pl.model == "cells":
+            m = cell_models.cells(int(p["K"]), rng, cell_size=p["cell_size"], states=int(p["states"]),
+                                  lam_range=(p["lam_low"], p["lam_high"]))
+        else:
+            m = cell_models.diffusion(int(p["K"]), rng, eps=p["eps"], radius=p["radius"], cell_size=p["cell_size"],
+                                      locations=int(p["locations"]))
+    except DesignError as exc:
+        raise ScenarioError(f"plant: {exc}", source=source) from None
+    n = m.A.shape[0]
+    lti = ContinuousLTI(A=m.A, B=np.zeros((n, 0)), banks=tuple(np.atleast_2d(c) for c in m.loc_C),
+                        state_names=tuple(f"x{i + 1}" for i in range(n)))
+    blocks = {name: np.flatnonzero(m.state_block == b) for b, name in enumerate(m.block_names)}
+    return PlantModel(lti=lti, discrete=True, positions=np.asarray(m.positions), x0=np.asarray(m.x0),
+                      blocks=blocks, cell_of_location=np.asarray(m.loc_cell))
+
+
+def _plant(sc: Scenario, source: str) -> PlantModel:
+    pl = sc.plant
+    if pl.model in _CELL_PARAMS:
+        model = _cell_plant(sc, source)
+        if sc.sensors is not None:
+            raise ScenarioError(f"sensors: the sensing locations are given by model {pl.model!r}", source=source)
+        return model
     if pl.model == "three_inertia":
         if pl.A is not None or pl.B is not None:
             raise ScenarioError("plant: A and B are given by model 'three_inertia'; use model = 'lti' for explicit matrices", source=source)
@@ -173,13 +256,20 @@ def _plant(sc: Scenario, source: str) -> ContinuousLTI:
         banks = base.banks
     if pl.state_names and len(pl.state_names) != n:
         raise ScenarioError(f"plant.state_names: expected {n} names, got {len(pl.state_names)}", source=source)
-    return ContinuousLTI(A=base.A, B=base.B, banks=banks, state_names=base.state_names)
+    if pl.model == "three_inertia" and pl.time == "discrete":
+        raise ScenarioError("plant.time: model 'three_inertia' is a continuous-time plant", source=source)
+    positions = None
+    if sc.sensors is not None and any(s.position is not None for s in sc.sensors):
+        positions = np.array([s.position if s.position is not None else (np.nan, np.nan) for s in sc.sensors], dtype=float)
+    return PlantModel(lti=ContinuousLTI(A=base.A, B=base.B, banks=banks, state_names=base.state_names),
+                      discrete=pl.time == "discrete", positions=positions)
 
 
 def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = True) -> Experiment:
     """Build the experiment. With ``check_conditions`` (the default for runs), a
     disconnected graph or a violated redundancy assumption is an error."""
-    plant = _plant(sc, source)
+    model = _plant(sc, source)
+    plant = model.lti
     n = plant.n
     # sensor banks -> rows of the stacked output
     sizes = [C.shape[0] for C in plant.banks]
@@ -190,26 +280,53 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
         for b in range(len(sizes))
     ]
     nb = len(sizes)
-    # agents
+    # agents: static (banks) or mobile (patrols)
+    patrols: list[Patrol | None] = []
+    per_cell = None
     if sc.agents is None:
         agent_ids = list(range(1, nb + 1))
         agent_banks = [[b] for b in range(nb)]
+        patrols = [None] * nb
+    elif not isinstance(sc.agents, list):  # generated cell patrols
+        if model.cell_of_location is None:
+            raise ScenarioError(f"agents: kind 'cell_patrols' needs a plant with cells (cells, diffusion), got {sc.plant.model!r}", source=source)
+        try:
+            gen = cell_patrols(model.cell_of_location, agents_per_cell=sc.agents.per_cell, periods=sc.agents.periods)
+        except DesignError as exc:
+            raise ScenarioError(f"agents: {exc}", source=source) from None
+        patrols = list(gen)
+        per_cell = sc.agents.per_cell
+        agent_ids = list(range(1, len(patrols) + 1))
+        agent_banks = [[] for _ in patrols]
     else:
         agent_ids, agent_banks = [], []
         for k, a in enumerate(sc.agents):
             agent_ids.append(a.id if a.id is not None else k + 1)
-            for s in a.sensors:
-                if not 1 <= s <= nb:
-                    raise ScenarioError(f"agents[{k}].sensors: no sensor bank {s}; banks are 1..{nb}", source=source)
-            agent_banks.append([s - 1 for s in a.sensors])
+            if a.sensors is not None:
+                for s_ in a.sensors:
+                    if not 1 <= s_ <= nb:
+                        raise ScenarioError(f"agents[{k}].sensors: no sensor bank {s_}; banks are 1..{nb}", source=source)
+                agent_banks.append([s_ - 1 for s_ in a.sensors])
+                patrols.append(None)
+            else:
+                pt = a.patrol
+                bad = [l for l in pt.locations if not 1 <= l <= nb]
+                if bad:
+                    raise ScenarioError(f"agents[{k}].patrol.locations: no location(s) {bad}; locations are 1..{nb}", source=source)
+                try:
+                    patrols.append(Patrol(tuple(l - 1 for l in pt.locations), tuple(pt.offsets), tuple(pt.periods), agent=agent_ids[-1]))
+                except DesignError as exc:
+                    raise ScenarioError(f"agents[{k}].patrol: {exc}", source=source) from None
+                agent_banks.append([])
         dup = {i for i in agent_ids if agent_ids.count(i) > 1}
         if dup:
             raise ScenarioError(f"agents: duplicate agent id(s) {sorted(dup)}", source=source)
     N = len(agent_ids)
     index_of = {aid: i for i, aid in enumerate(agent_ids)}
-    agent_rows = [np.concatenate([bank_rows[b] for b in banks]) for banks in agent_banks]
+    agent_rows = [np.concatenate([bank_rows[b] for b in banks]).astype(int) if banks else np.zeros(0, dtype=int) for banks in agent_banks]
+    schedules = [PatrolSchedule(pt, model.positions) if pt is not None else None for pt in patrols]
     # graph
-    Adj = _graph(sc, N, index_of, source)
+    Adj = _graph(sc, N, index_of, source, per_cell=per_cell)
     # input, initial state
     inp = sc.plant.input
     p = plant.B.shape[1]
@@ -219,10 +336,18 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
         signal = Signal.constant(p, inp.offset)
     else:
         signal = Signal.sine(p, amplitude=inp.amplitude, omega=inp.omega, phase=inp.phase, offset=inp.offset)
-    x0 = init_vector(sc.plant.x0, n, rng_for(sc.run.seed, STREAM_PLANT_X0), where="plant.x0")
-    Ad, Bd = zoh(plant.A, plant.B, sc.run.dt)
+    if sc.plant.x0 is not None:
+        x0 = init_vector(sc.plant.x0, n, rng_for(sc.run.seed, STREAM_PLANT_X0), where="plant.x0")
+    elif model.x0 is not None:
+        x0 = model.x0.copy()
+    else:
+        x0 = rng_for(sc.run.seed, STREAM_PLANT_X0).uniform(-1.0, 1.0, size=n)
+    if model.discrete:
+        Ad, Bd = plant.A.copy(), plant.B.copy()
+    else:
+        Ad, Bd = zoh(plant.A, plant.B, sc.run.dt)
     # blocks
-    blocks: dict[str, np.ndarray] = {"x": np.arange(n)}
+    blocks: dict[str, np.ndarray] = {"x": np.arange(n), **model.blocks}
     for name, idx in sc.plant.blocks.items():
         if name == "x":
             raise ScenarioError("plant.blocks: the name 'x' is reserved for the whole state", source=source)
@@ -232,7 +357,30 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
         blocks[name] = np.array([i - 1 for i in idx])
     # sensor attacks
     attacks = []
+    byzantine: set[int] = set()
+    strategies: dict[int, Any] = {}
     for k, at in enumerate(sc.attacks):
+        if at.target == "agent":
+            from transport.byzantine import Strategy  # noqa: PLC0415 (transport is a runtime layer)
+
+            for a in at.agents:
+                if a not in index_of:
+                    raise ScenarioError(f"attacks[{k}].agents: no agent {a}; agents are {agent_ids[0]}..{agent_ids[-1]}", source=source)
+                i = index_of[a]
+                if i in strategies:
+                    raise ScenarioError(f"attacks[{k}].agents: agent {a} already has a Byzantine strategy", source=source)
+                bad = [r for r in (at.towards or []) if r not in index_of]
+                if bad:
+                    raise ScenarioError(f"attacks[{k}].towards: no agent(s) {bad}", source=source)
+                dt = sc.run.dt
+                strategies[i] = Strategy(
+                    kind=at.kind, start=int(np.ceil(at.start / dt - 1e-9)),
+                    stop=None if np.isinf(at.stop) else int(np.ceil(at.stop / dt - 1e-9)),
+                    targets=frozenset(at.towards) if at.towards else None, value=at.value, scale=at.scale,
+                    shift=at.shift, lag=at.lag, payload=at.payload, seed=sc.run.seed, agent=a,
+                )
+                byzantine.add(i)
+            continue
         if at.target == "sensor":
             for s in at.sensors:
                 if not 1 <= s <= nb:
@@ -248,7 +396,8 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     exp = Experiment(
         scenario=sc, source=source, plant=plant, Ad=Ad, Bd=Bd, x0=x0, input=signal, bank_rows=bank_rows,
         bank_names=bank_names, agent_ids=agent_ids, agent_rows=agent_rows, Adj=Adj, blocks=blocks,
-        sensor_attacks=attacks,
+        sensor_attacks=attacks, byzantine=byzantine, strategies=strategies, discrete=model.discrete,
+        positions=model.positions, patrols=patrols, schedules=schedules, cell_of_location=model.cell_of_location,
     )
     _check_expectations(exp, source)
     if check_conditions:
@@ -258,6 +407,10 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
             raise ScenarioError(f"network.graph: the graph is disconnected: agents {names}", source=source)
     est = sc.estimator
     if est.algorithm == "lee_kim_shim":
+        if model.discrete:
+            raise ScenarioError("estimator.algorithm: 'lee_kim_shim' is a continuous-time observer; the plant is discrete-time", source=source)
+        if not exp.static:
+            raise ScenarioError("estimator.algorithm: 'lee_kim_shim' needs static agents ([[agents]] with sensors)", source=source)
         agent_C = [plant.C[rows] for rows in agent_rows]
         if check_conditions:
             bad = redundancy_violations(plant.A, agent_C, est.q)
@@ -274,12 +427,66 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
             exp.lks = lks_design(plant.A, plant.B, agent_C, real_part=est.observer.real_part)
         except DesignError as exc:
             raise ScenarioError(f"estimator: {exc}", source=source) from None
+    elif est.algorithm == "lfre":
+        if not model.discrete:
+            raise ScenarioError("estimator.algorithm: 'lfre' is a discrete-time estimator; set plant.time = 'discrete'", source=source)
+        exp.mitra = mitra_design(exp, source=source, check=check_conditions)
     return exp
 
 
-def _graph(sc: Scenario, N: int, index_of: dict[int, int], source: str) -> np.ndarray:
+def _static_patrol(rows: list[int], agent: int, source: str) -> Patrol:
+    if len(rows) != 1:
+        raise ScenarioError(f"agents: agent {agent} reads {len(rows)} banks; an lfre agent reads one location per round", source=source)
+    return Patrol((rows[0],), (0,), (1,), agent=agent)
+
+
+def mitra_design(exp: Experiment, *, source: str, check: bool = True) -> "lfre.MitraDesign | None":
+    """The offline design of Mitra et al. (observers, source sets, MEDAGs) for ``exp``."""
+    est = exp.scenario.estimator
+    patrols = []
+    for i, pt in enumerate(exp.patrols):
+        if pt is None:
+            banks = [b for b, rows in enumerate(exp.bank_rows) if np.array_equal(rows, exp.agent_rows[i][: len(rows)]) and len(rows) == len(exp.agent_rows[i])]
+            pt = _static_patrol(banks, exp.agent_ids[i], source)
+        patrols.append(pt)
+    names = [b for b in exp.blocks if b != "x"]
+    block_idx = [exp.blocks[b] for b in names] or None
+    try:
+        return lfre.design(exp.plant.A, exp.plant.banks, patrols, exp.Adj, f=est.f, r=est.r, target=est.target,
+                           deadbeat=est.deadbeat, fuse_stable=est.fuse_stable, blocks=block_idx,
+                           block_names=names or None)
+    except DesignError as exc:
+        if not check:
+            return None
+        raise ScenarioError(f"estimator: {exc}", source=source) from None
+
+
+def _ids(v: Any) -> list[int]:
+    return [int(v)] if isinstance(v, int) else [int(x) for x in v]
+
+
+def _graph(sc: Scenario, N: int, index_of: dict[int, int], source: str, *, per_cell: int | None = None) -> np.ndarray:
     g = sc.network.graph
     try:
+        if g.kind == "attachment":
+            return attachment_graph(N, r=g.r, rng=rng_for(sc.run.seed, STREAM_GRAPH), preferential=g.preferential)
+        if g.kind == "cells":
+            if per_cell is None:
+                raise ScenarioError("network.graph: kind 'cells' needs agents = {kind = 'cell_patrols', ...}", source=source)
+            Adj = cell_graph(N // per_cell, per_cell, intra=g.intra)
+            for key, pairs, val in (("remove", g.remove, 0), ("add", g.add, 1)):
+                for k, (a, b) in enumerate(pairs):
+                    for v in _ids(a) + _ids(b):
+                        if v not in index_of:
+                            raise ScenarioError(f"network.graph.{key}[{k}]: no agent {v}", source=source)
+                    for x in _ids(a):
+                        for y in _ids(b):
+                            if x == y:
+                                continue
+                            Adj[index_of[y], index_of[x]] = val
+                            if not g.directed:
+                                Adj[index_of[x], index_of[y]] = val
+            return Adj
         if g.kind == "ring":
             return graphs.ring(N, directed=g.directed)
         if g.kind == "complete":
@@ -336,6 +543,9 @@ def conditions(exp: Experiment) -> list[Condition]:
     lam2 = graphs.algebraic_connectivity(Adj) if undirected else float("nan")
     out.append(Condition("lambda_2(L)", None, f"{lam2:.6g}"))
     est = exp.scenario.estimator
+    if est.algorithm == "lfre":
+        out.extend(_mitra_conditions(exp))
+        return out
     if est.algorithm == "lee_kim_shim":
         agent_C = [exp.plant.C[rows] for rows in exp.agent_rows]
         bad = redundancy_violations(exp.plant.A, agent_C, est.q)
@@ -364,4 +574,45 @@ def conditions(exp: Experiment) -> list[Condition]:
                                  "P_bar = I in the modal basis" if des.sqrt_Pbar is not None and np.allclose(des.sqrt_Pbar, np.eye(exp.n)) else ""))
             if b3 is not None:
                 out.append(Condition("Theorem 3 steady-state bound on |x_hat_i - x|", None, f"{b3:.6g}"))
+    return out
+
+
+def _mitra_conditions(exp: Experiment) -> list[Condition]:
+    """Source sets, strong robustness, MEDAG levels per block, and Theorem 2's MSS test."""
+    est = exp.scenario.estimator
+    out: list[Condition] = []
+    des = exp.mitra
+    if des is None:
+        try:
+            des = mitra_design(exp, source=exp.source)
+        except ScenarioError as exc:
+            out.append(Condition("MEDAG for every mode (Definition 2, Lemma 2)", False, exc.detail))
+            return out
+    ids = exp.agent_ids
+    lam = des.modal.lam
+    names = [b for b in exp.blocks if b != "x"] or ["x"]
+    r_min = np.inf
+    for b, name in enumerate(names):
+        modes = [j for j in des.medags if int(des.modal.block_of_mode[j]) == b] if names != ["x"] else list(des.medags)
+        if not modes:
+            continue
+        S = sorted(des.sources[modes[0]])
+        rob = min(strong_robustness(des.Adj, des.sources[j]) for j in modes)
+        r_min = min(r_min, rob)
+        levels = des.medags[modes[0]].levels
+        lv = " | ".join("{" + ",".join(str(ids[i]) for i in level) + "}" for level in levels)
+        out.append(Condition(f"{name}: source set S_j", None, "agents " + ",".join(str(ids[i]) for i in S)))
+        out.append(Condition(f"{name}: strongly (2f+1) = {2 * est.f + 1}-robust w.r.t. S_j", rob >= 2 * est.f + 1, f"strong robustness {rob}"))
+        out.append(Condition(f"{name}: MEDAG levels", None, lv))
+    rho = float(np.max(np.abs(des.modal.lam)))
+    m = robustness_multiplier(r_min, f=est.f) if est.f > 0 else np.inf
+    out.append(Condition(f"strongly (mf+1)-robust: m", None, f"m = {m} (min strong robustness {r_min}, f = {est.f})"))
+    p = exp.scenario.network.channel.drop_p
+    if np.isfinite(m) and m >= 1 and est.f > 0:
+        pbar = effective_erasure_probability(p, m=int(m), f=est.f)
+        margin = mss_margin(p, rho=rho, m=int(m), f=est.f)
+        pmax = max_erasure_probability(rho=rho, m=int(m), f=est.f)
+        out.append(Condition(f"MSS (Theorem 2): rho^2 pbar < 1 at p = {p:g}", bool(margin < 1),
+                             f"rho = {rho:.6g}, pbar = {pbar:.6g}, rho^2 pbar = {margin:.6g}"))
+        out.append(Condition("largest tolerable erasure probability p (eqs. 23-24)", None, f"{pmax:.6g}"))
     return out

@@ -79,15 +79,18 @@ Init = Annotated[Union[UniformInit, ValueInit, ZeroInit], Field(discriminator="k
 
 
 class PlantSection(Strict):
-    model: Literal["three_inertia", "lti"]
-    #: named-model parameters (e.g. J, b, k for three_inertia)
+    model: Literal["three_inertia", "lti", "cells", "diffusion"]
+    #: named-model parameters (e.g. J, b, k for three_inertia; K for cells)
     params: dict[str, float] = Field(default_factory=dict)
-    #: explicit matrices for model = "lti" (continuous time: x' = A x + B u)
+    #: "continuous": x' = A x + B u (integrated exactly); "discrete": x[k+1] = A x[k] + B u[k]
+    time: Literal["continuous", "discrete"] | None = None
+    #: explicit matrices for model = "lti"
     A: Matrix | None = None
     B: Matrix | None = None
     state_names: list[str] | None = None
     input: InputSignal = Field(default_factory=InputSignal)
-    x0: Init = Field(default_factory=UniformInit)
+    #: initial state; default: the named model's own (cells, diffusion), else uniform on [-1, 1]
+    x0: Init | None = None
     #: named blocks of the state, 1-based state indices, for per-block metrics
     blocks: dict[str, list[int]] = Field(default_factory=dict)
 
@@ -100,9 +103,40 @@ class SensorBank(Strict):
 
 
 # --------------------------------------------------------------------------- [[agents]]
+class PatrolSpec(Strict):
+    """A periodic patrol (Mitra et al. Section 3.2): location ``locations[r]`` is visited at
+    rounds ``offsets[r] + q * periods[r]``; commuting in between."""
+
+    locations: list[int] = Field(min_length=1, description="1-based location (sensor bank) ids")
+    offsets: list[int]
+    periods: list[int]
+
+    @model_validator(mode="after")
+    def _lengths(self) -> "PatrolSpec":
+        if not len(self.locations) == len(self.offsets) == len(self.periods):
+            raise ValueError(f"locations, offsets and periods must have the same length, got {len(self.locations)}, {len(self.offsets)}, {len(self.periods)}")
+        return self
+
+
 class AgentSpec(Strict):
     id: int | None = Field(default=None, ge=1)
-    sensors: list[int] = Field(min_length=1, description="1-based sensor bank ids")
+    sensors: list[int] | None = Field(default=None, min_length=1, description="1-based sensor bank ids (static agent)")
+    patrol: PatrolSpec | None = None
+
+    @model_validator(mode="after")
+    def _one(self) -> "AgentSpec":
+        if (self.sensors is None) == (self.patrol is None):
+            raise ValueError("give exactly one of 'sensors' (a static agent) or 'patrol' (a mobile agent)")
+        return self
+
+
+class CellPatrols(Strict):
+    """Generated agents: ``per_cell`` agents per cell, each patrolling every location of its
+    own cell with its cell's period (Mitra et al. Section 8.1)."""
+
+    kind: Literal["cell_patrols"]
+    per_cell: int = Field(default=4, ge=1)
+    periods: list[int] = Field(min_length=1)
 
 
 # --------------------------------------------------------------------------- [network]
@@ -121,7 +155,30 @@ class EdgesGraph(Strict):
     directed: bool = False
 
 
-Graph = Annotated[Union[RingGraph, CompleteGraph, EdgesGraph], Field(discriminator="kind")]
+Ids = int | list[int]
+
+
+class CellsGraph(Strict):
+    """Mitra et al. Fig. 5: every agent talks with every agent of the adjacent cells (cells
+    on a ring). ``remove`` / ``add``: ``[from, to]`` pairs, each side an id or a list of ids,
+    removed / added in both directions unless ``directed``."""
+
+    kind: Literal["cells"]
+    intra: bool = False
+    remove: list[tuple[Ids, Ids]] = Field(default_factory=list)
+    add: list[tuple[Ids, Ids]] = Field(default_factory=list)
+    directed: bool = False
+
+
+class AttachmentGraph(Strict):
+    """Mitra et al. Section 8: each new agent attaches to ``r`` existing ones (seeded)."""
+
+    kind: Literal["attachment"]
+    r: int = Field(ge=1)
+    preferential: bool = True
+
+
+Graph = Annotated[Union[RingGraph, CompleteGraph, EdgesGraph, CellsGraph, AttachmentGraph], Field(discriminator="kind")]
 
 
 class LossWindow(Strict):
@@ -157,7 +214,22 @@ class LeeKimShimEstimator(Strict):
     x0: Init = Field(default_factory=UniformInit)
 
 
-Estimator = Annotated[Union[LeeKimShimEstimator], Field(discriminator="algorithm")]
+class MitraEstimator(Strict):
+    """Mitra et al. 2019: switched partial observers (7)-(8) and resilient fusion."""
+
+    algorithm: Literal["lfre"]
+    #: lfre: (21)-(22); sw_lfre: (14) with time stamps; median: Remark 7; average: non-resilient
+    rule: Literal["lfre", "sw_lfre", "median", "average"] = "lfre"
+    f: int = Field(default=1, ge=0)
+    #: MEDAG in-degree (default 2f + 1)
+    r: int | None = Field(default=None, ge=1)
+    #: sampled-error pole target for the switched observers
+    target: float = Field(default=0.5, ge=0, lt=1)
+    deadbeat: bool = False
+    fuse_stable: bool = True
+
+
+Estimator = Annotated[Union[LeeKimShimEstimator, MitraEstimator], Field(discriminator="algorithm")]
 
 
 # --------------------------------------------------------------------------- [[attacks]]
@@ -181,7 +253,23 @@ class SensorAttack(Strict):
         return self
 
 
-Attack = Annotated[Union[SensorAttack], Field(discriminator="target")]
+class AgentAttack(Strict):
+    """A Byzantine agent: what it sends is replaced by a strategy (transport.byzantine)."""
+
+    target: Literal["agent"]
+    agents: list[int] = Field(min_length=1, description="1-based agent ids")
+    kind: Literal["constant", "huge", "omission", "equivocation", "false_stamp", "replay", "crash", "cancellation"]
+    start: float = Field(default=0.0, description="seconds (rounds when dt = 1)")
+    stop: float = math.inf
+    towards: list[int] | None = Field(default=None, description="receivers affected (default: all)")
+    value: float = 0.0
+    scale: float = Field(default=1e6, gt=0)
+    shift: int = 1
+    lag: int = Field(default=10, ge=1)
+    payload: Literal["estimate", "huge"] = "huge"
+
+
+Attack = Annotated[Union[SensorAttack, AgentAttack], Field(discriminator="target")]
 
 
 # --------------------------------------------------------------------------- [output] / [[expect]]
@@ -191,7 +279,7 @@ class OutputSection(Strict):
 
 
 class Expectation(Strict):
-    metric: Literal["error_2", "error_inf", "relative_error_2"]
+    metric: Literal["error_2", "error_inf", "relative_error_2", "error_ratio"]
     block: str = "x"
     agents: Literal["regular"] | list[int] = "regular"
     over: Literal["window", "final"] | tuple[float, float] = "window"
@@ -211,7 +299,7 @@ class Scenario(Strict):
     run: RunSection
     plant: PlantSection
     sensors: list[SensorBank] | None = None
-    agents: list[AgentSpec] | None = None
+    agents: list[AgentSpec] | CellPatrols | None = None
     network: NetworkSection
     estimator: Estimator
     attacks: list[Attack] = Field(default_factory=list)

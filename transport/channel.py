@@ -22,7 +22,7 @@ from typing import Iterable
 
 import numpy as np
 
-_BLOCK = 1024
+_BLOCK = 1024  # rounds per block of draws (fate() indexes with >> 10 and & 1023)
 _STREAM = 4
 
 
@@ -50,35 +50,35 @@ class Channel:
     delay_max: int = 0
     #: (first round, last round, links (sender, receiver)) during which links drop all
     losses: list[tuple[int, int, frozenset[tuple[int, int]]]] = field(default_factory=list)
-    _blocks: dict[tuple[int, int], tuple[int, np.ndarray]] = field(default_factory=dict, repr=False)
+    _blocks: dict[tuple[int, int], tuple[int, list]] = field(default_factory=dict, repr=False)
 
-    @property
-    def perfect(self) -> bool:
-        return self.drop_p == 0.0 and self.delay_max == 0 and not self.losses
+    def __post_init__(self) -> None:
+        self.perfect = self.drop_p == 0.0 and self.delay_max == 0 and not self.losses
 
-    def _draws(self, sender: int, receiver: int, stamp: int) -> np.ndarray:
-        b = stamp // _BLOCK
-        cached = self._blocks.get((sender, receiver))
-        if cached is None or cached[0] != b:
-            rng = np.random.default_rng([self.seed, _STREAM, sender, receiver, b])
-            cached = (b, rng.random((_BLOCK, 2)))
-            self._blocks[(sender, receiver)] = cached
-        return cached[1][stamp % _BLOCK]
+    def _block(self, sender: int, receiver: int, b: int) -> list:
+        """Extra delays of rounds ``b*1024 .. b*1024+1023`` on one link (-1: erased)."""
+        u = np.random.default_rng([self.seed, _STREAM, sender, receiver, b]).random((_BLOCK, 2))
+        delay = (u[:, 1] * (self.delay_max + 1)).astype(np.int64) if self.delay_max else np.zeros(_BLOCK, dtype=np.int64)
+        if self.drop_p:
+            delay[u[:, 0] < self.drop_p] = -1
+        return delay.tolist()
 
     def fate(self, sender: int, receiver: int, stamp: int) -> int | None:
         """Round from which the message is visible to ``receiver``, or None if lost."""
         if self.perfect:
             return stamp + 1
+        if stamp < 0:
+            return None
         for r0, r1, links in self.losses:
             if r0 <= stamp <= r1 and (sender, receiver) in links:
                 return None
-        if stamp < 0:
-            return None
-        u = self._draws(sender, receiver, stamp)
-        if self.drop_p and u[0] < self.drop_p:
-            return None
-        delay = int(u[1] * (self.delay_max + 1)) if self.delay_max else 0
-        return stamp + 1 + delay
+        b = stamp >> 10
+        cached = self._blocks.get((sender, receiver))
+        if cached is None or cached[0] != b:
+            cached = (b, self._block(sender, receiver, b))
+            self._blocks[(sender, receiver)] = cached
+        extra = cached[1][stamp & 1023]
+        return None if extra < 0 else stamp + 1 + extra
 
 
 def loss_windows(spec: Iterable[tuple[tuple[int, int], Iterable[tuple[int, int]]]]) -> list:

@@ -49,7 +49,7 @@ def test_failed_expectation_has_its_own_exit_status(run_rse, tmp_path):
     [
         (["does/not/exist.toml"], "does/not/exist.toml: no such file"),
         ([str(SCENARIOS / "lee_kim_shim.toml"), "--set", "network.graph.kind=rnig"],
-         "network.graph: unknown kind 'rnig'; expected one of ring, complete, edges"),
+         "network.graph: unknown kind 'rnig'; expected one of ring, complete, edges, cells, attachment"),
         ([str(SCENARIOS / "lee_kim_shim.toml"), "--set", "estimator.q=2"], "estimator.q: the sensor set is not 4-redundantly observable"),
         ([str(SCENARIOS / "lee_kim_shim.toml"), "--set", "estimator.bogus=1"], "estimator.bogus: unknown key"),
     ],

@@ -47,7 +47,7 @@ def test_toml_syntax_error(tmp_path):
 def test_unknown_graph_kind_message():
     d = raw()
     d["network"]["graph"] = {"kind": "rnig"}
-    assert err(d) == "x.toml: network.graph: unknown kind 'rnig'; expected one of ring, complete, edges"
+    assert err(d) == "x.toml: network.graph: unknown kind 'rnig'; expected one of ring, complete, edges, cells, attachment"
 
 
 def test_unknown_keys_are_errors():
