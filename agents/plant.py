@@ -2,7 +2,9 @@
 
 Round ``k``: ``x[k]`` is the state at ``t_k = k dt``; :meth:`measure` returns the stacked
 ``y[k] = C x[k] + a(t_k)`` with the sensor attacks applied; :meth:`advance` moves to
-``x[k+1] = Ad x[k] + Bd u(t_k)`` (exact zero-order hold, :func:`estimation.lti.zoh`).
+``x[k+1] = Ad x[k] + Bd u(t_k)`` (exact zero-order hold, :func:`estimation.lti.zoh`, or
+the discrete-time plant itself). A nonlinear or noisy plant brings its own stepper
+(:class:`scenarios.common.PlantStepper`), which replaces the output map and the step.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ class PlantRole:
         self._Ad, self._Bd = exp.Ad, exp.Bd
         self._input = exp.input
         self._attacks = exp.sensor_attacks
+        self._stepper = exp.stepper
         self.k = 0
 
     @property
@@ -28,13 +31,15 @@ class PlantRole:
 
     def measure(self, k: int) -> np.ndarray:
         t = k * self.exp.dt
-        y = self._C @ self.x
+        y = self._C @ self.x if self._stepper is None else np.array(self._stepper.measure(k, self.x), dtype=float)
         for a in self._attacks:
             if a.active(t):
                 y[a.rows] += a.value_at(t)
         return y
 
     def advance(self, k: int) -> None:
-        u = self._input(k * self.exp.dt)
-        self.x = self._Ad @ self.x + self._Bd @ u
+        if self._stepper is not None:
+            self.x = np.asarray(self._stepper.advance(k, self.x), dtype=float)
+        else:
+            self.x = self._Ad @ self.x + self._Bd @ self._input(k * self.exp.dt)
         self.k = k + 1

@@ -102,16 +102,5 @@ def write_metrics(run_dir: Path, exp: Experiment, mon: Monitor, regular: np.ndar
 
 def write_design(run_dir: Path, exp: Experiment) -> None:
     """The offline design, for inspection and reuse (cached per run)."""
-    data: dict[str, Any] = {"algorithm": exp.scenario.estimator.algorithm}
-    if exp.lks is not None:
-        d = exp.lks
-        data.update({
-            "basis_method": d.basis.method,
-            "V": d.basis.V, "W": d.basis.W, "S": d.basis.S,
-            "observers": [
-                {"agent": aid, "observable": ob.observable, "L": ob.L,
-                 "poles_real": np.real(ob.poles), "poles_imag": np.imag(ob.poles)}
-                for aid, ob in zip(exp.agent_ids, d.observers)
-            ],
-        })
+    data: dict[str, Any] = {"algorithm": exp.scenario.estimator.algorithm, **exp.plugin.design_json(exp)}
     write_json(run_dir / "design.json", data)

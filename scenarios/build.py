@@ -15,34 +15,18 @@ from typing import Any, Callable
 import numpy as np
 
 from estimation import graphs
-from estimation import cells as cell_models
-from estimation import lfre
 from estimation.attacks import SensorAttackSignal
-from estimation.mss import effective_erasure_probability, max_erasure_probability, mss_margin, robustness_multiplier
-from estimation.patrols import Patrol, PatrolSchedule, cell_patrols
-from estimation.robustness import attachment_graph, cell_graph, strong_robustness
 from estimation.errors import DesignError, ScenarioError
-from estimation.lee_kim_shim import LeeKimShim, LKSDesign, design as lks_design, theorem3_bound
 from estimation.lti import ContinuousLTI, three_inertia, zoh
-from estimation.median_solver import theorem1_bound
-from estimation.observability import redundancy_violations
+from estimation.patrols import Patrol, PatrolSchedule, cell_patrols
+from estimation.robustness import attachment_graph, cell_graph
 from estimation.signals import Signal
 
+from . import plugins
+from .common import (  # noqa: F401  (re-exported for the drivers and tests)
+    STREAM_AGENT_X0, STREAM_GRAPH, STREAM_PLANT_X0, STREAM_SENSOR_ATTACK, Condition, PlantModel, rng_for,
+)
 from .schema import Init, Scenario
-
-# Stream tags for seeded generators: every random quantity has its own stream derived
-# from (run seed, tag, index), so both drivers draw identical numbers in any order.
-STREAM_PLANT_X0 = 1
-STREAM_AGENT_X0 = 2
-STREAM_SENSOR_ATTACK = 3
-STREAM_CHANNEL = 4
-STREAM_MAP = 6
-STREAM_GRAPH = 7
-
-
-def rng_for(seed: int, tag: int, *index: int) -> np.random.Generator:
-    """A generator for one stream (see the stream tags above)."""
-    return np.random.default_rng([seed, tag, *index])
 
 
 @dataclass
@@ -67,8 +51,8 @@ class Experiment:
     Adj: np.ndarray
     blocks: dict[str, np.ndarray]
     sensor_attacks: list[SensorAttackSignal]
-    lks: LKSDesign | None = None
-    mitra: "lfre.MitraDesign | None" = None
+    design: Any = None  # the algorithm plugin's offline design
+    stepper: Any = None  # a nonlinear / noisy plant's own step (see scenarios.common.PlantStepper)
     byzantine: set[int] = field(default_factory=set)  # agent indices
     strategies: dict[int, Any] = field(default_factory=dict)  # agent index -> Byzantine strategy
     discrete: bool = False
@@ -122,27 +106,13 @@ class Experiment:
     def static(self) -> bool:
         return not any(s is not None for s in self.schedules)
 
+    @property
+    def plugin(self):
+        return plugins.algorithm(self.scenario.estimator.algorithm)
+
     def make_estimator(self, i: int):
         """A fresh estimator for agent index ``i`` (its initial estimate is seeded)."""
-        est = self.scenario.estimator
-        if est.algorithm == "lfre":
-            return lfre.make_estimator(self.mitra, agent=i, rule=est.rule)
-        if est.algorithm == "lee_kim_shim":
-            x0 = init_vector(est.x0, self.n, rng_for(self.seed, STREAM_AGENT_X0, i), where="estimator.x0")
-            return LeeKimShim(
-                self.lks,
-                agent=i,
-                kappa=est.kappa,
-                gamma=est.gamma,
-                dt=self.dt,
-                variant=est.variant,
-                sign=est.sign,
-                input_fn=self.input,
-                x0=x0,
-                max_age=est.max_age,
-                max_degree=int(self.Adj[i].sum()),
-            )
-        raise ScenarioError(f"estimator.algorithm: {est.algorithm!r} is not built yet", source=self.source)
+        return self.plugin.make_estimator(self, i)
 
 
 def init_vector(spec: Init, n: int, rng: np.random.Generator, *, where: str) -> np.ndarray:
@@ -172,63 +142,11 @@ def _matrix(rows: Any, where: str, source: str, *, cols: int | None = None, nrow
     return M
 
 
-@dataclass
-class PlantModel:
-    """The plant as built from ``[plant]`` and ``[[sensors]]``."""
-
-    lti: ContinuousLTI
-    discrete: bool
-    positions: np.ndarray | None = None
-    x0: np.ndarray | None = None  # the model's own initial state
-    blocks: dict[str, np.ndarray] = field(default_factory=dict)
-    cell_of_location: np.ndarray | None = None
-
-
-_CELL_PARAMS = {
-    "cells": {"K": 4, "states": 20, "lam_low": 0.5, "lam_high": 1.2, "cell_size": 30.0},
-    "diffusion": {"K": 4, "locations": 10, "eps": 0.01, "radius": 15.0, "cell_size": 30.0},
-}
-
-
-def _cell_plant(sc: Scenario, source: str) -> PlantModel:
-    pl = sc.plant
-    allowed = _CELL_PARAMS[pl.model]
-    unknown = set(pl.params) - set(allowed)
-    if unknown:
-        raise ScenarioError(f"plant.params: unknown parameter(s) {sorted(unknown)}; expected some of {sorted(allowed)}", source=source)
-    if pl.A is not None or pl.B is not None:
-        raise ScenarioError(f"plant: A and B are given by model {pl.model!r}", source=source)
-    if pl.time == "continuous":
-        raise ScenarioError(f"plant.time: model {pl.model!r} is a discrete-time plant", source=source)
-    p = {**allowed, **pl.params}
-    for key in ("K", "states", "locations"):
-        if key in p and (p[key] != int(p[key]) or p[key] < 1):
-            raise ScenarioError(f"plant.params.{key}: expected a positive integer, got {p[key]}", source=source)
-    rng = rng_for(sc.run.seed, STREAM_MAP)
-    try:
-        if pl.model == "cells":
-            m = cell_models.cells(int(p["K"]), rng, cell_size=p["cell_size"], states=int(p["states"]),
-                                  lam_range=(p["lam_low"], p["lam_high"]))
-        else:
-            m = cell_models.diffusion(int(p["K"]), rng, eps=p["eps"], radius=p["radius"], cell_size=p["cell_size"],
-                                      locations=int(p["locations"]))
-    except DesignError as exc:
-        raise ScenarioError(f"plant: {exc}", source=source) from None
-    n = m.A.shape[0]
-    lti = ContinuousLTI(A=m.A, B=np.zeros((n, 0)), banks=tuple(np.atleast_2d(c) for c in m.loc_C),
-                        state_names=tuple(f"x{i + 1}" for i in range(n)))
-    blocks = {name: np.flatnonzero(m.state_block == b) for b, name in enumerate(m.block_names)}
-    return PlantModel(lti=lti, discrete=True, positions=np.asarray(m.positions), x0=np.asarray(m.x0),
-                      blocks=blocks, cell_of_location=np.asarray(m.loc_cell))
-
-
 def _plant(sc: Scenario, source: str) -> PlantModel:
     pl = sc.plant
-    if pl.model in _CELL_PARAMS:
-        model = _cell_plant(sc, source)
-        if sc.sensors is not None:
-            raise ScenarioError(f"sensors: the sensing locations are given by model {pl.model!r}", source=source)
-        return model
+    if pl.model not in ("three_inertia", "lti"):
+        _, build_plant = plugins.plant(pl.model)
+        return build_plant(sc, source)
     if pl.model == "three_inertia":
         if pl.A is not None or pl.B is not None:
             raise ScenarioError("plant: A and B are given by model 'three_inertia'; use model = 'lti' for explicit matrices", source=source)
@@ -405,60 +323,9 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
         if len(comps) > 1:
             names = " and ".join("{" + ", ".join(str(agent_ids[i]) for i in c) + "}" for c in comps)
             raise ScenarioError(f"network.graph: the graph is disconnected: agents {names}", source=source)
-    est = sc.estimator
-    if est.algorithm == "lee_kim_shim":
-        if model.discrete:
-            raise ScenarioError("estimator.algorithm: 'lee_kim_shim' is a continuous-time observer; the plant is discrete-time", source=source)
-        if not exp.static:
-            raise ScenarioError("estimator.algorithm: 'lee_kim_shim' needs static agents ([[agents]] with sensors)", source=source)
-        agent_C = [plant.C[rows] for rows in agent_rows]
-        if check_conditions:
-            bad = redundancy_violations(plant.A, agent_C, est.q)
-            if bad:
-                subset, dim = bad[0]
-                who = ", ".join(str(agent_ids[i]) for i in subset) or "(none)"
-                raise ScenarioError(
-                    f"estimator.q: the sensor set is not {2 * est.q}-redundantly observable (Assumption 2): "
-                    f"agents {who} alone leave a {dim}-dimensional unobservable subspace "
-                    f"({len(bad)} such set(s) of {N - 2 * est.q} agents); lower q or add sensors",
-                    source=source,
-                )
-        try:
-            exp.lks = lks_design(plant.A, plant.B, agent_C, real_part=est.observer.real_part)
-        except DesignError as exc:
-            raise ScenarioError(f"estimator: {exc}", source=source) from None
-    elif est.algorithm == "lfre":
-        if not model.discrete:
-            raise ScenarioError("estimator.algorithm: 'lfre' is a discrete-time estimator; set plant.time = 'discrete'", source=source)
-        exp.mitra = mitra_design(exp, source=source, check=check_conditions)
+    exp.stepper = model.stepper
+    exp.design = exp.plugin.design(exp, check=check_conditions)
     return exp
-
-
-def _static_patrol(rows: list[int], agent: int, source: str) -> Patrol:
-    if len(rows) != 1:
-        raise ScenarioError(f"agents: agent {agent} reads {len(rows)} banks; an lfre agent reads one location per round", source=source)
-    return Patrol((rows[0],), (0,), (1,), agent=agent)
-
-
-def mitra_design(exp: Experiment, *, source: str, check: bool = True) -> "lfre.MitraDesign | None":
-    """The offline design of Mitra et al. (observers, source sets, MEDAGs) for ``exp``."""
-    est = exp.scenario.estimator
-    patrols = []
-    for i, pt in enumerate(exp.patrols):
-        if pt is None:
-            banks = [b for b, rows in enumerate(exp.bank_rows) if np.array_equal(rows, exp.agent_rows[i][: len(rows)]) and len(rows) == len(exp.agent_rows[i])]
-            pt = _static_patrol(banks, exp.agent_ids[i], source)
-        patrols.append(pt)
-    names = [b for b in exp.blocks if b != "x"]
-    block_idx = [exp.blocks[b] for b in names] or None
-    try:
-        return lfre.design(exp.plant.A, exp.plant.banks, patrols, exp.Adj, f=est.f, r=est.r, target=est.target,
-                           deadbeat=est.deadbeat, fuse_stable=est.fuse_stable, blocks=block_idx,
-                           block_names=names or None)
-    except DesignError as exc:
-        if not check:
-            return None
-        raise ScenarioError(f"estimator: {exc}", source=source) from None
 
 
 def _ids(v: Any) -> list[int]:
@@ -522,15 +389,6 @@ def _check_expectations(exp: Experiment, source: str) -> None:
                 raise ScenarioError(f"expect[{k}].over: expected 0 <= t0 <= t1 <= {T:g}, got [{t0:g}, {t1:g}]", source=source)
 
 
-@dataclass
-class Condition:
-    """One paper condition as reported by ``rse check``."""
-
-    name: str
-    holds: bool | None  # None: a figure, not a pass/fail condition
-    detail: str
-
-
 def conditions(exp: Experiment) -> list[Condition]:
     """Evaluate the scenario's conditions (never raises for a failed condition)."""
     out: list[Condition] = []
@@ -542,77 +400,5 @@ def conditions(exp: Experiment) -> list[Condition]:
                          f"{'undirected' if undirected else 'directed'}, {len(comps)} component(s)"))
     lam2 = graphs.algebraic_connectivity(Adj) if undirected else float("nan")
     out.append(Condition("lambda_2(L)", None, f"{lam2:.6g}"))
-    est = exp.scenario.estimator
-    if est.algorithm == "lfre":
-        out.extend(_mitra_conditions(exp))
-        return out
-    if est.algorithm == "lee_kim_shim":
-        agent_C = [exp.plant.C[rows] for rows in exp.agent_rows]
-        bad = redundancy_violations(exp.plant.A, agent_C, est.q)
-        detail = (f"every set of {exp.N - 2 * est.q} agents observes x" if not bad else
-                  f"{len(bad)} set(s) of {exp.N - 2 * est.q} agents do not, e.g. agents "
-                  + ", ".join(str(exp.agent_ids[i]) for i in bad[0][0]))
-        out.append(Condition(f"{2 * est.q}-redundant observability, q = {est.q} (Assumption 2)", not bad, detail))
-        des = exp.lks
-        if des is None:
-            try:
-                des = lks_design(exp.plant.A, exp.plant.B, agent_C, real_part=est.observer.real_part)
-            except DesignError as exc:
-                out.append(Condition("common basis (Assumption 4)", False, str(exc)))
-                return out
-        S = des.basis.S
-        counts = S.sum(axis=0)
-        out.append(Condition("common basis (Assumption 4)", True,
-                             f"{des.basis.method} basis; banks observing each basis direction: {counts.tolist()}"))
-        out.append(Condition(f"each direction observed by >= 2q+1 = {2 * est.q + 1} agents (Lemma 1)",
-                             bool(np.all(counts >= 2 * est.q + 1)), f"min {int(counts.min())}"))
-        if connected and undirected:
-            out.append(Condition(f"Theorem 1 bound 2 sqrt(N)/(gamma lambda_2), gamma = {est.gamma:g}", None,
-                                 f"{theorem1_bound(Adj, est.gamma):.6g}"))
-            b3 = theorem3_bound(des, Adj, est.gamma)
-            out.append(Condition("plant Lyapunov stable (Theorem 3 / eq. 11)", des.sqrt_Pbar is not None,
-                                 "P_bar = I in the modal basis" if des.sqrt_Pbar is not None and np.allclose(des.sqrt_Pbar, np.eye(exp.n)) else ""))
-            if b3 is not None:
-                out.append(Condition("Theorem 3 steady-state bound on |x_hat_i - x|", None, f"{b3:.6g}"))
-    return out
-
-
-def _mitra_conditions(exp: Experiment) -> list[Condition]:
-    """Source sets, strong robustness, MEDAG levels per block, and Theorem 2's MSS test."""
-    est = exp.scenario.estimator
-    out: list[Condition] = []
-    des = exp.mitra
-    if des is None:
-        try:
-            des = mitra_design(exp, source=exp.source)
-        except ScenarioError as exc:
-            out.append(Condition("MEDAG for every mode (Definition 2, Lemma 2)", False, exc.detail))
-            return out
-    ids = exp.agent_ids
-    lam = des.modal.lam
-    names = [b for b in exp.blocks if b != "x"] or ["x"]
-    r_min = np.inf
-    for b, name in enumerate(names):
-        modes = [j for j in des.medags if int(des.modal.block_of_mode[j]) == b] if names != ["x"] else list(des.medags)
-        if not modes:
-            continue
-        S = sorted(des.sources[modes[0]])
-        rob = min(strong_robustness(des.Adj, des.sources[j]) for j in modes)
-        r_min = min(r_min, rob)
-        levels = des.medags[modes[0]].levels
-        lv = " | ".join("{" + ",".join(str(ids[i]) for i in level) + "}" for level in levels)
-        out.append(Condition(f"{name}: source set S_j", None, "agents " + ",".join(str(ids[i]) for i in S)))
-        out.append(Condition(f"{name}: strongly (2f+1) = {2 * est.f + 1}-robust w.r.t. S_j", rob >= 2 * est.f + 1, f"strong robustness {rob}"))
-        out.append(Condition(f"{name}: MEDAG levels", None, lv))
-    rho = float(np.max(np.abs(des.modal.lam)))
-    m = robustness_multiplier(r_min, f=est.f) if est.f > 0 else np.inf
-    out.append(Condition(f"strongly (mf+1)-robust: m", None, f"m = {m} (min strong robustness {r_min}, f = {est.f})"))
-    p = exp.scenario.network.channel.drop_p
-    if np.isfinite(m) and m >= 1 and est.f > 0:
-        pbar = effective_erasure_probability(p, m=int(m), f=est.f)
-        margin = mss_margin(p, rho=rho, m=int(m), f=est.f)
-        pmax = max_erasure_probability(rho=rho, m=int(m), f=est.f)
-        out.append(Condition(f"MSS (Theorem 2): rho^2 pbar < 1 at p = {p:g}", bool(margin < 1),
-                             f"rho = {rho:.6g}, pbar = {pbar:.6g}, rho^2 pbar = {margin:.6g}"))
-        out.append(Condition("largest tolerable erasure probability p (eqs. 23-24)", None, f"{pmax:.6g}"))
+    out.extend(exp.plugin.conditions(exp))
     return out

@@ -12,15 +12,10 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
-
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-Matrix = list[list[float]]
-Vector = list[float]
+from .plugins import estimator_sections, plant_model_names
+from .types import Init, Matrix, Strict, UniformInit, Vector, ZeroInit, ValueInit  # noqa: F401
 
 
 # --------------------------------------------------------------------------- [run]
@@ -54,32 +49,11 @@ class InputSignal(Strict):
     offset: float = 0.0
 
 
-class UniformInit(Strict):
-    kind: Literal["uniform"] = "uniform"
-    low: float = -1.0
-    high: float = 1.0
-
-    @model_validator(mode="after")
-    def _order(self) -> "UniformInit":
-        if not self.low <= self.high:
-            raise ValueError(f"low must be <= high, got low={self.low}, high={self.high}")
-        return self
-
-
-class ValueInit(Strict):
-    kind: Literal["value"] = "value"
-    value: Vector
-
-
-class ZeroInit(Strict):
-    kind: Literal["zero"] = "zero"
-
-
-Init = Annotated[Union[UniformInit, ValueInit, ZeroInit], Field(discriminator="kind")]
+PlantModelName = Literal[("three_inertia", "lti", *plant_model_names())]  # type: ignore[valid-type]
 
 
 class PlantSection(Strict):
-    model: Literal["three_inertia", "lti", "cells", "diffusion"]
+    model: PlantModelName
     #: named-model parameters (e.g. J, b, k for three_inertia; K for cells)
     params: dict[str, float] = Field(default_factory=dict)
     #: "continuous": x' = A x + B u (integrated exactly); "discrete": x[k+1] = A x[k] + B u[k]
@@ -198,38 +172,7 @@ class NetworkSection(Strict):
 
 
 # --------------------------------------------------------------------------- [estimator]
-class ObserverPoles(Strict):
-    real_part: float = Field(default=-1.0, lt=0)
-
-
-class LeeKimShimEstimator(Strict):
-    algorithm: Literal["lee_kim_shim"]
-    variant: Literal["median", "lyapunov", "linear"] = "median"
-    kappa: float = Field(gt=0)
-    gamma: float = Field(gt=0)
-    q: int = Field(default=1, ge=0, description="number of attacked sensor banks tolerated")
-    observer: ObserverPoles = Field(default_factory=ObserverPoles)
-    sign: Literal["implicit", "held"] = "implicit"
-    max_age: int = Field(default=3, ge=0)
-    x0: Init = Field(default_factory=UniformInit)
-
-
-class MitraEstimator(Strict):
-    """Mitra et al. 2019: switched partial observers (7)-(8) and resilient fusion."""
-
-    algorithm: Literal["lfre"]
-    #: lfre: (21)-(22); sw_lfre: (14) with time stamps; median: Remark 7; average: non-resilient
-    rule: Literal["lfre", "sw_lfre", "median", "average"] = "lfre"
-    f: int = Field(default=1, ge=0)
-    #: MEDAG in-degree (default 2f + 1)
-    r: int | None = Field(default=None, ge=1)
-    #: sampled-error pole target for the switched observers
-    target: float = Field(default=0.5, ge=0, lt=1)
-    deadbeat: bool = False
-    fuse_stable: bool = True
-
-
-Estimator = Annotated[Union[LeeKimShimEstimator, MitraEstimator], Field(discriminator="algorithm")]
+Estimator = Annotated[Union[estimator_sections()], Field(discriminator="algorithm")]  # type: ignore[valid-type]
 
 
 # --------------------------------------------------------------------------- [[attacks]]

@@ -1,0 +1,65 @@
+"""Pieces shared by the builder and the algorithm plugins: seeded streams, the plant as
+built, and the conditions ``rse check`` reports."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from estimation.lti import ContinuousLTI
+
+# Stream tags for seeded generators: every random quantity has its own stream derived
+# from (run seed, tag, index), so both drivers draw identical numbers in any order.
+STREAM_PLANT_X0 = 1
+STREAM_AGENT_X0 = 2
+STREAM_SENSOR_ATTACK = 3
+STREAM_CHANNEL = 4  # used by transport.channel
+STREAM_BYZANTINE = 5  # used by transport.byzantine
+STREAM_MAP = 6
+STREAM_GRAPH = 7
+STREAM_PLANT_NOISE = 8
+STREAM_ESTIMATOR = 9
+
+
+def rng_for(seed: int, tag: int, *index: int) -> np.random.Generator:
+    """A generator for one stream (see the stream tags above)."""
+    return np.random.default_rng([seed, tag, *index])
+
+
+class PlantStepper(Protocol):
+    """A plant that is not a plain LTI system (nonlinear, noisy): the plant role calls
+    ``measure(k, x)`` for ``y[k]`` (before sensor attacks) and ``advance(k, x)`` for
+    ``x[k+1]``. Both are called once per round, in increasing round order."""
+
+    def measure(self, k: int, x: np.ndarray) -> np.ndarray: ...
+
+    def advance(self, k: int, x: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass
+class PlantModel:
+    """The plant as built from ``[plant]`` and ``[[sensors]]``.
+
+    ``lti`` carries ``A``, ``B`` and the sensor banks (for a nonlinear plant: its linear
+    part and output rows). ``stepper`` replaces the exact LTI step when given.
+    """
+
+    lti: ContinuousLTI
+    discrete: bool
+    positions: np.ndarray | None = None
+    x0: np.ndarray | None = None  # the model's own initial state
+    blocks: dict[str, np.ndarray] = field(default_factory=dict)
+    cell_of_location: np.ndarray | None = None
+    stepper: PlantStepper | None = None
+    info: dict[str, Any] = field(default_factory=dict)  # model data plugins need later
+
+
+@dataclass
+class Condition:
+    """One paper condition as reported by ``rse check``."""
+
+    name: str
+    holds: bool | None  # None: a figure, not a pass/fail condition
+    detail: str

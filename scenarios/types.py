@@ -1,0 +1,40 @@
+"""Shared building blocks of the scenario schema (used by :mod:`scenarios.schema` and the
+algorithm plugins in :mod:`scenarios.plugins`)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+Matrix = list[list[float]]
+Vector = list[float]
+
+
+class UniformInit(Strict):
+    kind: Literal["uniform"] = "uniform"
+    low: float = -1.0
+    high: float = 1.0
+
+    @model_validator(mode="after")
+    def _order(self) -> "UniformInit":
+        if not self.low <= self.high:
+            raise ValueError(f"low must be <= high, got low={self.low}, high={self.high}")
+        return self
+
+
+class ValueInit(Strict):
+    kind: Literal["value"] = "value"
+    value: Vector
+
+
+class ZeroInit(Strict):
+    kind: Literal["zero"] = "zero"
+
+
+Init = Annotated[Union[UniformInit, ValueInit, ZeroInit], Field(discriminator="kind")]
