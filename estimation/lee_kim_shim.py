@@ -42,7 +42,6 @@ from typing import Callable, Sequence
 
 import numpy as np
 from scipy.linalg import sqrtm
-from scipy.signal import place_poles
 
 from .base import Inbox
 from .errors import DesignError
@@ -174,7 +173,7 @@ def design(
         if len(target) != len(obs):
             raise DesignError(f"agent {i + 1}: {len(target)} observer poles given, the observable part has {len(obs)} states")
         try:
-            res = place_poles(A_o.T, C_o.T, target)
+            res = _place_poles(A_o.T, C_o.T, target)
         except ValueError as exc:
             raise DesignError(f"agent {i + 1}: observer pole placement failed: {exc}") from exc
         L = np.real(res.gain_matrix.T)
@@ -183,10 +182,18 @@ def design(
     return LKSDesign(A=A, B=B, basis=basis, observers=tuple(observers), sqrt_Pbar=lyapunov_certificate(A, basis))
 
 
+def _place_poles(A: np.ndarray, B: np.ndarray, poles: np.ndarray):
+    # scipy.signal costs ~0.5 s and ~40 MB to import; only the offline design needs it,
+    # so a process that receives a built estimator (an agent of ``rse run``) never loads it.
+    from scipy.signal import place_poles
+
+    return place_poles(A, B, poles)
+
+
 def discrete_gain(Phi: np.ndarray, C: np.ndarray, poles: np.ndarray, *, agent: int = 0) -> np.ndarray:
     """Gain ``L_d`` with ``eig(Phi - L_d C) = poles`` (discrete-time observer placement)."""
     try:
-        res = place_poles(Phi.T, C.T, poles)
+        res = _place_poles(Phi.T, C.T, poles)
     except ValueError as exc:
         raise DesignError(f"agent {agent + 1}: discrete observer pole placement failed: {exc}") from exc
     return np.real(res.gain_matrix.T)
