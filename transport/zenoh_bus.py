@@ -1,0 +1,211 @@
+"""The bus the networked roles talk through: Zenoh, or an in-memory stand-in for tests.
+
+A role (plant, agent, monitor) needs five things from the network::
+
+    bus.publish(key, payload)          # bytes out on a key expression
+    bus.subscribe(pattern, queue)      # (key, bytes) items into an asyncio.Queue
+    bus.watch(pattern, queue)          # liveliness: (key, True) on join, (key, False) on leave,
+                                       # the tokens already present are reported at once
+    bus.announce(key)                  # declare this process's liveliness token
+    bus.close()                        # undeclare everything (idempotent)
+
+Items of :meth:`subscribe` carry ``bytes``, items of :meth:`watch` carry a ``bool``, so a
+role can feed both into one queue and tell them apart by type.
+
+:class:`ZenohBus` wraps an open ``zenoh.Session`` (see :mod:`transport.zenoh_session`;
+the session's owner closes it) and delivers through the one bridge
+(:func:`transport.bridge.make_bridge`). Publishers are declared once per key, reliable
+and with congestion control ``BLOCK`` (a lockstep run must not lose messages to a full
+transmit queue) and ``express`` (no batching delay: a round is a chain of small messages).
+
+:class:`InMemoryHub` / :class:`InMemoryBus` implement the same interface inside one event
+loop, with Zenoh's ``*`` / ``**`` key matching; the in-process tests of the roles use it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Any
+
+from transport.bridge import BridgeStats, liveliness_to_item, make_bridge
+
+__all__ = ["Bus", "ZenohBus", "InMemoryHub", "InMemoryBus", "key_matches"]
+
+log = logging.getLogger(__name__)
+
+
+class Bus:
+    """The interface (see the module docstring); both implementations subclass it."""
+
+    stats: BridgeStats
+
+    def publish(self, key: str, payload: bytes) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def subscribe(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def watch(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def announce(self, key: str) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def close(self) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+
+class ZenohBus(Bus):
+    """A :class:`Bus` over an open Zenoh session (the caller owns and closes the session)."""
+
+    def __init__(self, session: Any, loop: asyncio.AbstractEventLoop | None = None) -> None:
+        import zenoh
+
+        self._zenoh = zenoh
+        self.session = session
+        self.loop = loop or asyncio.get_running_loop()
+        self.stats = BridgeStats()
+        self._publishers: dict[str, Any] = {}
+        self._subscribers: list[Any] = []
+        self._tokens: list[Any] = []
+        self._closed = False
+
+    def publish(self, key: str, payload: bytes) -> None:
+        if self._closed:
+            return
+        pub = self._publishers.get(key)
+        if pub is None:
+            z = self._zenoh
+            pub = self.session.declare_publisher(
+                key, congestion_control=z.CongestionControl.BLOCK, express=True, reliability=z.Reliability.RELIABLE
+            )
+            self._publishers[key] = pub
+        pub.put(payload)
+
+    def subscribe(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:
+        cb = make_bridge(self.loop, queue, stats=self.stats, name=pattern)
+        self._subscribers.append(self.session.declare_subscriber(pattern, cb))
+
+    def watch(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:
+        cb = make_bridge(self.loop, queue, convert=liveliness_to_item, stats=self.stats, name=pattern)
+        self._subscribers.append(self.session.liveliness().declare_subscriber(pattern, cb, history=True))
+
+    def announce(self, key: str) -> None:
+        self._tokens.append(self.session.liveliness().declare_token(key))
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for group in (self._subscribers, self._tokens, list(self._publishers.values())):
+            for obj in group:
+                try:
+                    obj.undeclare()
+                except Exception:  # the session may already be closed; nothing to leak then
+                    log.debug("undeclare failed", exc_info=True)
+        self._subscribers.clear()
+        self._tokens.clear()
+        self._publishers.clear()
+
+
+# ------------------------------------------------------------------------------ in memory
+
+
+def key_matches(pattern: str, key: str) -> bool:
+    """Zenoh key-expression matching of a concrete ``key`` against ``pattern``:
+    ``*`` is exactly one chunk, ``**`` is zero or more chunks."""
+    return _match(pattern.split("/"), key.split("/"))
+
+
+def _match(p: list[str], k: list[str]) -> bool:
+    if not p:
+        return not k
+    head = p[0]
+    if head == "**":
+        return any(_match(p[1:], k[i:]) for i in range(len(k) + 1))
+    if not k:
+        return False
+    if head == "*" or head == k[0]:
+        return _match(p[1:], k[1:])
+    return False
+
+
+class InMemoryHub:
+    """The shared medium of several :class:`InMemoryBus` in one event loop."""
+
+    def __init__(self) -> None:
+        self.subs: list[tuple[str, "asyncio.Queue[Any]", "InMemoryBus"]] = []
+        self.watchers: list[tuple[str, "asyncio.Queue[Any]", "InMemoryBus"]] = []
+        self.tokens: dict[str, int] = {}
+        self.published = 0
+
+    def bus(self) -> "InMemoryBus":
+        return InMemoryBus(self)
+
+    def _deliver(self, queue: "asyncio.Queue[Any]", item: Any, stats: BridgeStats) -> None:
+        try:
+            queue.put_nowait(item)
+        except asyncio.QueueFull:
+            stats.dropped_full += 1
+        else:
+            stats.received += 1
+
+    def _post(self, queue: "asyncio.Queue[Any]", item: Any, stats: BridgeStats) -> None:
+        # Asynchronous like the real thing: never re-enter the publisher.
+        asyncio.get_running_loop().call_soon(self._deliver, queue, item, stats)
+
+    def _token(self, key: str, alive: bool) -> None:
+        for pattern, queue, owner in list(self.watchers):
+            if key_matches(pattern, key):
+                self._post(queue, (key, alive), owner.stats)
+
+
+class InMemoryBus(Bus):
+    """A :class:`Bus` on an :class:`InMemoryHub` (messages are copied as bytes)."""
+
+    def __init__(self, hub: InMemoryHub) -> None:
+        self.hub = hub
+        self.stats = BridgeStats()
+        self._tokens: list[str] = []
+        self._closed = False
+
+    def publish(self, key: str, payload: bytes) -> None:
+        if self._closed:
+            return
+        self.hub.published += 1
+        data = bytes(payload)
+        for pattern, queue, owner in list(self.hub.subs):
+            if key_matches(pattern, key):
+                self.hub._post(queue, (key, data), owner.stats)
+
+    def subscribe(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:
+        self.hub.subs.append((pattern, queue, self))
+
+    def watch(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:
+        self.hub.watchers.append((pattern, queue, self))
+        for key, count in self.hub.tokens.items():
+            if count > 0 and key_matches(pattern, key):
+                self.hub._post(queue, (key, True), self.stats)
+
+    def announce(self, key: str) -> None:
+        self._tokens.append(key)
+        self.hub.tokens[key] = self.hub.tokens.get(key, 0) + 1
+        if self.hub.tokens[key] == 1:
+            self.hub._token(key, True)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.hub.subs = [s for s in self.hub.subs if s[2] is not self]
+        self.hub.watchers = [w for w in self.hub.watchers if w[2] is not self]
+        for key in self._tokens:
+            self.hub.tokens[key] -= 1
+            if self.hub.tokens[key] == 0:
+                del self.hub.tokens[key]
+                try:
+                    self.hub._token(key, False)
+                except RuntimeError:  # no running loop: nobody is listening any more
+                    pass
+        self._tokens.clear()
