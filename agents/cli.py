@@ -176,3 +176,5 @@ def main() -> None:
 
 if __name__ == "__main__":
     main()
+
+from . import cli_net  # noqa: E402,F401

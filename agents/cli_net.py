@@ -1,0 +1,284 @@
+"""The networked commands of ``rse``: ``run``, ``plant``, ``agent``, ``monitor``, ``bench run``.
+
+Registered on the click group of :mod:`agents.cli` (imported at its end). Exit statuses
+as there: 0 success, 1 failure (the message names the failed process), 2 bad input,
+3 an ``[expect]`` bound failed, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+import click
+
+from estimation.errors import ExpectationFailed, RSEError, ScenarioError
+
+from .cli import EXIT_INTERRUPTED, _handle_errors, bench, cli, load_experiment, scenario_options
+
+
+def _run_options(fn: Callable) -> Callable:
+    fn = click.option("--deadline", type=click.FloatRange(min=0.001), default=1.0, show_default=True,
+                      help="Lockstep: seconds a round waits for a silent agent or a missing message.")(fn)
+    fn = click.option("--rate", type=click.FloatRange(min=0.001), default=None, metavar="HZ",
+                      help="Realtime: the plant's tick rate (required). Lockstep: an upper bound on rounds/s.")(fn)
+    fn = click.option("--mode", type=click.Choice(["lockstep", "realtime"]), default="lockstep", show_default=True,
+                      help="lockstep: equal to rse simulate; realtime: wall-clock ticks, late messages by stamp.")(fn)
+    fn = click.option("--startup-timeout", type=click.FloatRange(min=0.1), default=60.0, show_default=True,
+                      help="Seconds to wait for the team to assemble.")(fn)
+    return fn
+
+
+def _config(mode: str, rate: float | None, deadline: float, startup_timeout: float, save_estimates: bool = False):
+    from .net.roles import RunConfig
+
+    try:
+        return RunConfig(mode=mode, rate=rate, deadline=deadline, startup_timeout=startup_timeout,
+                         save_estimates=save_estimates)
+    except ValueError as exc:
+        raise click.UsageError(str(exc)) from None
+
+
+def _endpoints(connect: tuple[str, ...]) -> tuple[str, ...]:
+    from transport.zenoh_session import normalize_endpoint
+
+    try:
+        return tuple(normalize_endpoint(e) for e in connect)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--connect") from None
+
+
+def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
+    from .console import expectations_table, out as console, summary_table
+    from .summary import ExpectationResult
+
+    if summary is None:
+        return
+    console.print(summary_table(summary, title=title))
+    results = [ExpectationResult(**{k: e[k] for k in ("label", "value", "max", "min", "ok")})
+               for e in summary.get("expectations", [])]
+    for r in results:
+        if r.value is None:
+            r.value = float("nan")
+    if results:
+        console.print(expectations_table(results))
+    rej = summary.get("rejected") or {}
+    if rej:
+        console.print("rejected messages: " + ", ".join(f"{who}: {rec.get('total', 0)}" for who, rec in rej.items()))
+    perf = summary.get("performance") or {}
+    if perf.get("rounds_per_s"):
+        console.print(f"{perf['rounds']} rounds in {perf['elapsed_s']:.2f} s: {perf['rounds_per_s']:,.0f} rounds/s")
+    failed = [r for r in results if not r.ok]
+    if failed:
+        raise ExpectationFailed(f"{len(failed)} of {len(results)} expectation(s) failed: " + "; ".join(r.label for r in failed))
+
+
+@cli.command()
+@scenario_options
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Run directory (default: runs/NAME-TIMESTAMP).")
+@_run_options
+@click.option("--connect", multiple=True, metavar="tcp/HOST:PORT",
+              help="Zenoh router(s): every process is a client of them (multi-host). Default: peers on loopback.")
+@click.option("--run-id", default=None, help="Run id in every key expression (default: NAME-RANDOM).")
+@click.option("--save-estimates", is_flag=True, help="Also write estimates.npy and truth.npy (every agent's estimate per round).")
+@click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
+@_handle_errors
+def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, mode: str, rate: float | None,
+        deadline: float, startup_timeout: float, connect: tuple[str, ...], run_id: str | None, save_estimates: bool,
+        progress: bool) -> None:
+    """Run SCENARIO as a team of processes over Zenoh: plant, monitor, one process per agent.
+
+    Writes the same run directory as `rse simulate` (manifest.json, design.json,
+    metrics.parquet, summary.json) plus team.json (run id, endpoints: restart a killed agent
+    with `rse agent --id I --team RUN_DIR/team.json`). In lockstep mode the estimates equal
+    `rse simulate`'s.
+    """
+    from transport.keys import validate_run_id
+
+    from .net.launcher import launch
+    from .rundir import default_run_dir
+
+    cfg = _config(mode, rate, deadline, startup_timeout, save_estimates)
+    eps = _endpoints(connect)
+    if run_id is not None:
+        try:
+            validate_run_id(run_id)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--run-id") from None
+    exp, frozen = load_experiment(scenario, overrides, seed)
+    run_dir = out or default_run_dir(exp.scenario.run.name)
+    res = launch(scenario, overrides, seed, run_dir, cfg, connect=eps, progress=progress, run_id=run_id, exp=exp, frozen=frozen)
+    from .console import out as console
+
+    if res.status == EXIT_INTERRUPTED:
+        raise KeyboardInterrupt
+    if res.status != 0:
+        raise RSEError("; ".join(res.failures) or "the run failed")
+    for leave in res.leaves:
+        console.print(f"left during the run: {leave}")
+    _print_outcome(res.summary, f"{exp.scenario.run.name} (rse run, {mode}): {res.summary['rounds'] + 1} rounds, "
+                                f"window t in [{exp.window[0]:g}, {exp.window[1]:g}]")
+    console.print(f"run directory: {run_dir}")
+
+
+# ----------------------------------------------------------------- single roles
+
+
+def _role_options(fn: Callable) -> Callable:
+    fn = click.option("--verbose", "-v", is_flag=True, help="Log joins, leaves and rounds.")(fn)
+    fn = click.option("--listen", default=None, metavar="tcp/HOST:PORT",
+                      help="Peer mode: endpoint to listen on (default: the team file's, or a free loopback port).")(fn)
+    fn = click.option("--connect", multiple=True, metavar="tcp/HOST:PORT",
+                      help="Endpoints of the team's peers, or of a router with --client.")(fn)
+    fn = click.option("--client", is_flag=True, help="Be a client of the router(s) given with --connect.")(fn)
+    fn = click.option("--run-id", default=None, help="The team's run id (from the team file by default).")(fn)
+    fn = click.option("--team", type=click.Path(path_type=Path), default=None,
+                      help="team.json written by `rse run` (or its run directory): run id, scenario, endpoints.")(fn)
+    fn = _run_options(fn)
+    fn = click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE",
+                      help="Override any scenario key (as for rse run; default: the team file's).")(fn)
+    fn = click.option("--seed", type=click.IntRange(min=0), default=None, help="Override run.seed.")(fn)
+    fn = click.argument("scenario", required=False, type=click.Path(dir_okay=False, path_type=Path))(fn)
+    return fn
+
+
+def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[str, ...], seed: int | None,
+               team: Path | None, run_id: str | None, client: bool, connect: tuple[str, ...], listen: str | None,
+               mode: str, rate: float | None, deadline: float, startup_timeout: float, verbose: bool, **extra: Any):
+    from transport.keys import validate_run_id
+    from transport.zenoh_session import SessionOptions, normalize_endpoint, tcp_endpoint
+
+    from .net.launcher import ChildSpec, load_team, session_for
+
+    ctx = click.get_current_context()
+    data: dict[str, Any] = load_team(team) if team is not None else {}
+    src = lambda name: ctx.get_parameter_source(name) == click.core.ParameterSource.DEFAULT  # noqa: E731
+    scenario = scenario or (Path(data["scenario"]) if data.get("scenario") else None)
+    if scenario is None:
+        raise click.UsageError("give SCENARIO (or --team RUN_DIR/team.json)")
+    overrides = overrides or tuple(data.get("overrides", ()))
+    seed = seed if seed is not None else data.get("seed")
+    if data and src("mode"):
+        mode = data.get("mode", mode)
+    if data and src("rate"):
+        rate = data.get("rate", rate)
+    if data and src("deadline"):
+        deadline = data.get("deadline", deadline)
+    run_id = run_id or data.get("run_id")
+    if not run_id:
+        raise click.UsageError("give --run-id (or --team RUN_DIR/team.json)")
+    try:
+        validate_run_id(run_id)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--run-id") from None
+    eps = _endpoints(connect)
+    if client:
+        if not eps:
+            raise click.UsageError("--client needs --connect tcp/HOST:PORT (a Zenoh router)")
+        session = SessionOptions.client(eps)
+    elif data and not eps and listen is None:
+        session = session_for(data, label)
+    else:
+        try:
+            lst = normalize_endpoint(listen) if listen else (data.get("endpoints", {}).get(label) or tcp_endpoint(0))
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--listen") from None
+        others = eps or tuple(v for k, v in data.get("endpoints", {}).items() if k != label)
+        session = SessionOptions(mode="peer", listen=(lst,), connect=others)
+    cfg = _config(mode, rate, deadline, startup_timeout, extra.pop("save_estimates", False))
+    # validate the scenario here, so that a bad one is exit status 2 with the usual message
+    load_experiment(scenario, overrides, seed)
+    return ChildSpec(role=role, scenario=str(scenario), overrides=tuple(overrides), seed=seed, run_id=run_id, cfg=cfg,
+                     session=session, log_level=logging.INFO if verbose else logging.WARNING, **extra)
+
+
+def _run_single(spec: Any) -> None:
+    from .net.launcher import run_role
+
+    code = run_role(spec)
+    if code == EXIT_INTERRUPTED:
+        raise KeyboardInterrupt
+    sys.exit(code)
+
+
+@cli.command()
+@_role_options
+@_handle_errors
+def plant(**kw: Any) -> None:
+    """Run the plant of SCENARIO in this process (one member of a team; see `rse run`)."""
+    _run_single(_role_spec("plant", "plant", **kw))
+
+
+@cli.command()
+@_role_options
+@click.option("--id", "agent_id", type=int, required=True, help="The agent's id (1-based, as in the scenario).")
+@_handle_errors
+def agent(agent_id: int, **kw: Any) -> None:
+    """Run agent --id I of SCENARIO in this process; joins (or rejoins) a running team.
+
+    Against a team started by `rse run`: `rse agent --id 3 --team RUN_DIR/team.json`.
+    """
+    spec = _role_spec("agent", f"agent {agent_id}", agent_id=agent_id, **kw)
+    exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
+    if agent_id not in exp.agent_ids:
+        raise ScenarioError(f"--id {agent_id}: no such agent; agents are {', '.join(map(str, exp.agent_ids))}")
+    _run_single(spec)
+
+
+@cli.command()
+@_role_options
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Where to write metrics and summary.")
+@click.option("--save-estimates", is_flag=True, help="Also write estimates.npy and truth.npy.")
+@_handle_errors
+def monitor(out: Path, save_estimates: bool, **kw: Any) -> None:
+    """Run the monitor of SCENARIO in this process: writes metrics.parquet and summary.json to --out."""
+    _run_single(_role_spec("monitor", "monitor", out_dir=str(out), save_estimates=save_estimates, **kw))
+
+
+# ----------------------------------------------------------------------- bench
+
+
+@bench.command("run")
+@scenario_options
+@click.option("--deadline", type=click.FloatRange(min=0.001), default=2.0, show_default=True, help="Lockstep deadline.")
+@click.option("--skeleton/--no-skeleton", default=True, show_default=True,
+              help="Also time the bare Zenoh lockstep skeleton (same processes and message sizes, no estimation).")
+@_handle_errors
+def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, deadline: float, skeleton: bool) -> None:
+    """Lockstep rounds/s of `rse run` on SCENARIO, next to the bare Zenoh skeleton's, and peak RSS per agent."""
+    import os
+    import platform
+    import statistics
+    import tempfile
+
+    from .console import out as console
+    from .net.launcher import launch
+    from .net.roles import RunConfig
+
+    exp, frozen = load_experiment(scenario, overrides, seed)
+    with tempfile.TemporaryDirectory(prefix="rse-bench-") as tmp:
+        res = launch(scenario, overrides, seed, Path(tmp) / "run", RunConfig(deadline=deadline), progress=False,
+                     exp=exp, frozen=frozen, say=lambda m: None)
+    if res.status != 0 or res.summary is None:
+        raise RSEError("; ".join(res.failures) or "the benchmark run failed")
+    perf = res.summary["performance"]
+    rss = [rec.get("maxrss_mb", float("nan")) for who, rec in res.summary["processes"].items() if who.startswith("agent")]
+    rate = perf["rounds_per_s"]
+    console.print(f"scenario {exp.scenario.run.name}: {exp.N} agents, {perf['rounds']} rounds, n = {exp.n}, "
+                  f"{exp.N + 2} processes")
+    console.print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+                  f"Python {platform.python_version()}, {platform.system()} {platform.release()}")
+    line = f"rse run lockstep:      {rate:10,.0f} rounds/s  ({rate * exp.N:,.0f} agent-rounds/s)"
+    console.print(line)
+    if skeleton:
+        from benchmarks.zenoh_skeleton import run_skeleton, sizes_for
+
+        sk = run_skeleton(sizes_for(exp), rounds=perf["rounds"])
+        console.print(f"bare Zenoh skeleton:   {sk['rounds_per_s']:10,.0f} rounds/s  (same processes and message sizes)")
+        console.print(f"runtime / skeleton:    {rate / sk['rounds_per_s']:10.0%}  (target >= 50%)")
+    console.print(f"peak RSS per agent process: max {max(rss):.0f} MB, median {statistics.median(rss):.0f} MB "
+                  f"(target <= 150 MB); plant {res.summary['processes'].get('plant', {}).get('maxrss_mb', float('nan')):.0f} MB, "
+                  f"monitor {res.summary['processes']['monitor']['maxrss_mb']:.0f} MB")

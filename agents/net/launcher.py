@@ -1,0 +1,488 @@
+"""``rse run``: one process per role of a scenario, supervised.
+
+The launcher builds the experiment once (to validate the scenario and write
+``manifest.json`` / ``design.json``), picks one free loopback port per process, and starts
+the plant, the monitor and one process per agent with the ``spawn`` start method. It
+opens no Zenoh session itself: every session lives in a child (:func:`run_role`), which
+listens on its port and connects to every other member's port (Zenoh peers on loopback,
+multicast scouting off), or is a client of the routers given with ``--connect``.
+
+It writes ``team.json`` to the run directory (run id, endpoints, process ids) so that a
+killed agent can be restarted by hand against the running team::
+
+    rse agent --id 3 --team RUN_DIR/team.json
+
+Supervision: the monitor reports progress over a pipe (rounds/s and the worst current
+error on the progress bar, joins and leaves); the launcher polls its children. An agent
+that is killed by a signal from outside is a *leave*: the team goes on without it. A
+process that exits with an error status is a *failure*: named in the final message, and
+the exit status is non-zero; a failed plant or monitor stops the run. On SIGINT or
+SIGTERM every child gets SIGTERM, then SIGKILL 1 s later; the launcher joins all of them
+(no orphan), and children also die with the launcher (``PR_SET_PDEATHSIG`` plus a parent
+watch).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import multiprocessing
+import os
+import signal
+import sys
+import time
+import uuid
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from estimation.errors import RSEError, ScenarioError, TransportError
+
+from .roles import RunConfig
+
+log = logging.getLogger("rse.net")
+
+STOP_GRACE_S = 1.0  # SIGTERM -> SIGKILL
+END_GRACE_S = 5.0  # after the monitor finished, how long the others may take to exit
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+@dataclass
+class ChildSpec:
+    """Everything a role process needs (picklable; sessions are opened in the child)."""
+
+    role: str  # "plant", "monitor" or "agent"
+    scenario: str
+    overrides: tuple[str, ...]
+    seed: int | None
+    run_id: str
+    cfg: RunConfig
+    session: Any  # transport.zenoh_session.SessionOptions
+    agent_id: int | None = None
+    out_dir: str | None = None
+    conn: Any = None  # the monitor's progress pipe to the launcher
+    log_level: int = logging.WARNING
+    watch_parent: bool = False
+    experiment: bytes | None = None  # the launcher's built experiment, pickled (no rebuild)
+    node: bytes | None = None  # an agent's built AgentNode, pickled (no design in the child)
+
+    @property
+    def label(self) -> str:
+        return f"agent {self.agent_id}" if self.role == "agent" else self.role
+
+
+def safe_run_id(name: str) -> str:
+    stem = "".join(c if c.isalnum() or c in "_.-" else "-" for c in name)[:40].strip("-_.") or "run"
+    return f"{stem}-{uuid.uuid4().hex[:8]}"
+
+
+# ------------------------------------------------------------------------- child side
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGTERM this process when its parent dies (no orphans)."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+    except Exception:  # pragma: no cover - best effort
+        pass
+
+
+def _open(opts: Any) -> Any:
+    from transport.zenoh_session import SessionOptions, open_session, tcp_endpoint
+
+    try:
+        return open_session(opts)
+    except TransportError:
+        if opts.mode != "peer" or not opts.listen or opts.listen == (tcp_endpoint(0),):
+            raise
+        # our port was taken meanwhile: listen on any port; we still connect to the others
+        return open_session(SessionOptions(mode="peer", listen=(tcp_endpoint(0),), connect=opts.connect))
+
+
+async def _role_main(spec: ChildSpec, exp: Any) -> Any:
+    from transport.keys import Keys
+    from transport.zenoh_bus import ZenohBus
+    from transport.zenoh_session import close_session
+
+    from . import roles
+
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, task.cancel)
+    watcher = None
+    if spec.watch_parent:
+        parent = os.getppid()
+
+        async def watch() -> None:
+            while os.getppid() == parent:
+                await asyncio.sleep(0.5)
+            task.cancel()
+
+        watcher = asyncio.ensure_future(watch())
+    session = await asyncio.to_thread(_open, spec.session)
+    log.debug("session open")
+    bus = None
+    try:
+        bus = ZenohBus(session, loop)
+        keys = Keys(spec.run_id)
+        if spec.role == "plant":
+            return await roles.run_plant(exp, bus, keys, spec.cfg)
+        if spec.role == "agent":
+            node = None
+            if spec.node is not None:
+                import pickle
+
+                node = pickle.loads(spec.node)
+            return await roles.run_agent(exp, spec.agent_id, bus, keys, spec.cfg, node=node)
+        conn = spec.conn
+
+        def progress(kind: str, data: Any) -> None:
+            if conn is not None:
+                try:
+                    conn.send((kind, data))
+                except (OSError, ValueError):
+                    pass
+
+        out = Path(spec.out_dir) if spec.out_dir else None
+        return await roles.run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress)
+    finally:
+        if watcher is not None:
+            watcher.cancel()
+        if bus is not None:
+            bus.close()
+        close_session(session)
+
+
+def run_role(spec: ChildSpec) -> int:
+    """Run one role in this process until the team stops; returns an exit status.
+
+    Errors are one line on stderr naming the role: 2 bad scenario, 1 failure, 130
+    interrupted (SIGINT / SIGTERM).
+    """
+    from agents.console import error
+
+    level = logging.DEBUG if os.environ.get("RSE_NET_DEBUG") else spec.log_level
+    logging.basicConfig(level=level, format=f"%(relativeCreated)6.0f ms rse {spec.label}: %(message)s",
+                        stream=sys.stderr, force=True)
+    for noisy in ("zenoh", "transport"):
+        logging.getLogger(noisy).setLevel(max(level, logging.INFO))
+    try:
+        if spec.experiment is not None:
+            import pickle
+
+            exp = pickle.loads(spec.experiment)
+        else:
+            from agents.cli import load_experiment
+
+            exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
+        log.debug("scenario built")
+        asyncio.run(_role_main(spec, exp))
+        return EXIT_OK
+    except ScenarioError as exc:
+        error(f"{spec.label}: {exc}")
+        return EXIT_BAD_INPUT
+    except RSEError as exc:
+        error(f"{spec.label}: {exc}")
+        return EXIT_FAILED
+    except (KeyboardInterrupt, asyncio.CancelledError):
+        return EXIT_INTERRUPTED
+    except OSError as exc:
+        error(f"{spec.label}: {exc}")
+        return EXIT_FAILED
+    except Exception as exc:
+        if os.environ.get("RSE_DEBUG"):
+            raise
+        error(f"{spec.label}: internal error: {type(exc).__name__}: {exc} (set RSE_DEBUG=1 for the traceback)")
+        return EXIT_FAILED
+
+
+def child_entry(spec: ChildSpec) -> None:
+    """Target of the spawned processes."""
+    _die_with_parent()
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    code = run_role(spec)
+    sys.stderr.flush()
+    os._exit(code)  # multiprocessing's own exit path would try to join feeder threads
+
+
+# ------------------------------------------------------------------------ launcher side
+
+
+@dataclass
+class Team:
+    run_id: str
+    endpoints: dict[str, str]
+    mode: str
+    connect: tuple[str, ...]
+    scenario: str
+    overrides: tuple[str, ...]
+    seed: int | None
+    cfg: RunConfig
+    pids: dict[str, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "run_id": self.run_id, "endpoints": self.endpoints, "transport": self.mode, "connect": list(self.connect),
+            "scenario": self.scenario, "overrides": list(self.overrides), "seed": self.seed,
+            "mode": self.cfg.mode, "rate": self.cfg.rate, "deadline": self.cfg.deadline, "pids": self.pids,
+        }
+
+
+def load_team(path: Path) -> dict[str, Any]:
+    """Read ``team.json`` (written by ``rse run``)."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "team.json"
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise ScenarioError(f"{p}: no such team file (rse run writes RUN_DIR/team.json)") from None
+    except (OSError, ValueError) as exc:
+        raise ScenarioError(f"{p}: cannot read the team file: {exc}") from None
+    if not isinstance(data, dict) or "run_id" not in data or "endpoints" not in data:
+        raise ScenarioError(f"{p}: not a team file (no run_id / endpoints)")
+    return data
+
+
+def session_for(team: dict[str, Any], me: str, *, connect: tuple[str, ...] = ()) -> Any:
+    """Session options of process ``me`` (e.g. ``"agent 3"``) joining ``team``."""
+    from transport.zenoh_session import SessionOptions, tcp_endpoint
+
+    if connect or team.get("transport") == "client":
+        return SessionOptions.client(connect or tuple(team.get("connect", ())))
+    eps = team["endpoints"]
+    listen = eps.get(me, tcp_endpoint(0))
+    return SessionOptions(mode="peer", listen=(listen,), connect=tuple(v for k, v in eps.items() if k != me))
+
+
+@dataclass
+class LaunchResult:
+    status: int
+    run_dir: Path
+    run_id: str
+    summary: dict[str, Any] | None
+    failures: list[str]
+    leaves: list[str]
+
+
+def _distinct_ports(n: int) -> list[int]:
+    from transport.zenoh_session import free_tcp_port
+
+    ports: list[int] = []
+    while len(ports) < n:
+        p = free_tcp_port()
+        if p not in ports:
+            ports.append(p)
+    return ports
+
+
+def _describe_exit(code: int | None) -> str:
+    if code is None:
+        return "still running"
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit status {code}"
+
+
+def launch(
+    scenario: Path,
+    overrides: tuple[str, ...],
+    seed: int | None,
+    run_dir: Path,
+    cfg: RunConfig,
+    *,
+    connect: tuple[str, ...] = (),
+    progress: bool = True,
+    run_id: str | None = None,
+    exp: Any = None,
+    frozen: dict | None = None,
+    say: Any = None,
+) -> LaunchResult:
+    """Start and supervise the team; returns when every child has exited."""
+    from agents.console import err, round_progress
+    from agents.rundir import write_design, write_json, write_manifest
+    from transport.zenoh_session import SessionOptions, tcp_endpoint
+
+    say = say or (lambda msg: err.print(msg, soft_wrap=True))
+    if exp is None:
+        from agents.cli import load_experiment
+
+        exp, frozen = load_experiment(scenario, overrides, seed)
+    run_id = run_id or safe_run_id(exp.scenario.run.name)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    names = ["plant", "monitor"] + [f"agent {a}" for a in exp.agent_ids]
+    if connect:
+        endpoints: dict[str, str] = {}
+        sessions = {nm: SessionOptions.client(connect) for nm in names}
+    else:
+        ports = _distinct_ports(len(names))
+        endpoints = {nm: tcp_endpoint(p) for nm, p in zip(names, ports)}
+        sessions = {nm: SessionOptions(mode="peer", listen=(endpoints[nm],),
+                                       connect=tuple(endpoints[o] for o in names if o != nm)) for nm in names}
+    team = Team(run_id, endpoints, "client" if connect else "peer", tuple(connect), str(scenario), tuple(overrides), seed, cfg)
+    write_manifest(run_dir, exp, frozen or {}, driver="run", run_id=run_id,
+                   extra={"mode": cfg.mode, "rate": cfg.rate, "deadline": cfg.deadline, "endpoints": endpoints,
+                          "connect": list(connect)})
+    write_design(run_dir, exp)
+
+    ctx = multiprocessing.get_context("spawn")
+    recv_conn, send_conn = ctx.Pipe(duplex=False)
+    import pickle
+
+    base = dict(scenario=str(scenario), overrides=tuple(overrides), seed=seed, run_id=run_id, cfg=cfg, watch_parent=True,
+                experiment=pickle.dumps(exp))
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")  # tiny matrices: one BLAS thread per process (inherited by the children)
+    specs = {
+        "plant": ChildSpec(role="plant", session=sessions["plant"], **base),
+        "monitor": ChildSpec(role="monitor", session=sessions["monitor"], out_dir=str(run_dir), conn=send_conn, **base),
+    }
+    from agents.simulate import make_channel, make_nodes
+
+    nodes = make_nodes(exp, make_channel(exp))  # built once, as the simulator does
+    for a, node in zip(exp.agent_ids, nodes):
+        specs[f"agent {a}"] = ChildSpec(role="agent", agent_id=a, session=sessions[f"agent {a}"],
+                                        node=pickle.dumps(node), **base)
+    procs: dict[str, Any] = {}
+    failures: list[str] = []
+    leaves: list[str] = []
+    noted: set[str] = set()
+    stopping: list[int] = []
+    prev_handlers: dict[int, Any] = {}
+
+    def on_signal(signum: int, frame: Any) -> None:
+        stopping.append(signum)
+
+    in_main = _is_main_thread()
+    if in_main:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            prev_handlers[sig] = signal.signal(sig, on_signal)
+    status = EXIT_OK
+    try:
+        for name in names:
+            p = ctx.Process(target=child_entry, args=(specs[name],), name=f"rse-{name.replace(' ', '-')}", daemon=True)
+            p.start()
+            procs[name] = p
+        send_conn.close()  # the monitor holds the writing end now
+        team.pids = {nm: p.pid for nm, p in procs.items()}
+        write_json(run_dir / "team.json", team.as_dict())
+        say(f"run {run_id}: {exp.N} agents, {cfg.mode}"
+            + (f" at {cfg.rate:g} Hz" if cfg.rate else "") + f"; team file {run_dir / 'team.json'}")
+        status_path = run_dir / "status.json"
+        last_status = 0.0
+        monitor_done_at: float | None = None
+        k_now, worst = -1, float("nan")
+        with round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress) as update:
+            while True:
+                if stopping:
+                    break
+                try:
+                    ready = recv_conn.poll(0.1)
+                except (OSError, EOFError):
+                    ready = False
+                while ready:
+                    try:
+                        kind, data = recv_conn.recv()
+                    except (EOFError, OSError):
+                        break
+                    if kind == "round":
+                        k_now, worst = data
+                        update(k_now, worst)
+                    elif kind == "member" and data["role"] == "agent" and data["round"] > 0:
+                        say(f"agent {data['id']} {'joined' if data['event'] == 'join' else 'left'} (round {data['round']})")
+                    try:
+                        ready = recv_conn.poll(0)
+                    except (OSError, EOFError):
+                        ready = False
+                now = time.monotonic()
+                if now - last_status > 0.5:
+                    last_status = now
+                    with contextlib.suppress(OSError):
+                        write_json(status_path, {"run_id": run_id, "round": k_now, "worst_error_inf": worst, "time": time.time()})
+                fatal = False
+                for name, p in procs.items():
+                    if name in noted or p.exitcode is None:
+                        continue
+                    noted.add(name)
+                    code = p.exitcode
+                    if code == 0:
+                        if name == "monitor":
+                            monitor_done_at = now
+                        continue
+                    if name.startswith("agent") and code < 0 and monitor_done_at is None:
+                        leaves.append(f"{name} ({_describe_exit(code)})")
+                        say(f"{name} was {_describe_exit(code)}; the team goes on without it")
+                        continue
+                    failures.append(f"{name} failed ({_describe_exit(code)})")
+                    if name in ("plant", "monitor"):
+                        fatal = True
+                if fatal:
+                    break
+                if all(p.exitcode is not None for p in procs.values()):
+                    break
+                if monitor_done_at is not None and now - monitor_done_at > END_GRACE_S:
+                    late = [nm for nm, p in procs.items() if p.exitcode is None]
+                    failures.append(f"{', '.join(late)} did not stop after the end of the run")
+                    break
+    finally:
+        _stop_all(procs)
+        for name, p in procs.items():
+            if name not in noted and p.exitcode not in (None, 0) and not stopping:
+                if not (name.startswith("agent") and p.exitcode < 0):
+                    failures.append(f"{name} failed ({_describe_exit(p.exitcode)})")
+        for p in procs.values():
+            with contextlib.suppress(Exception):
+                p.close()
+        for c in (recv_conn, send_conn):
+            with contextlib.suppress(OSError):
+                c.close()
+        if in_main:
+            for sig, h in prev_handlers.items():
+                signal.signal(sig, h)
+    if stopping:
+        status = EXIT_INTERRUPTED
+    elif failures:
+        status = EXIT_FAILED
+    summary = None
+    with contextlib.suppress(OSError, ValueError):
+        summary = json.loads((run_dir / "summary.json").read_text())
+    if summary is None and status == EXIT_OK:
+        failures.append("the monitor wrote no summary")
+        status = EXIT_FAILED
+    return LaunchResult(status, run_dir, run_id, summary, failures, leaves)
+
+
+def _is_main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+def _stop_all(procs: dict[str, Any]) -> None:
+    """SIGTERM every live child, SIGKILL what is left after STOP_GRACE_S, join all."""
+    alive = [p for p in procs.values() if p.exitcode is None]
+    for p in alive:
+        with contextlib.suppress(Exception):
+            p.terminate()
+    end = time.monotonic() + STOP_GRACE_S
+    for p in alive:
+        p.join(max(0.0, end - time.monotonic()))
+    for p in alive:
+        if p.exitcode is None:
+            with contextlib.suppress(Exception):
+                p.kill()
+    for p in procs.values():
+        p.join(1.0)

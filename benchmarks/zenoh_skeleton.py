@@ -1,0 +1,217 @@
+"""The bare Zenoh lockstep skeleton: ``rse run``'s processes and messages, no estimation.
+
+The yardstick of ``rse bench run``: the same processes (plant, monitor, one per agent,
+spawned, one Zenoh peer session each on loopback, the same asyncio bridge), the same
+keys, the same message pattern per round and the same payload sizes as the runtime's
+encoded messages, but payloads are opaque bytes (a round stamp in the first 8 bytes,
+padding after), nothing is decoded and nothing is estimated::
+
+    plant   -> truth (n floats), meas to each agent        (after all agents' done k-1)
+    agent i -> est (broadcast), done                       (after meas k and every
+                                                            in-neighbour's est k-1)
+    monitor <- truth, done
+
+Usage: ``python -m benchmarks.zenoh_skeleton [N] [ROUNDS]`` (a ring of N agents, n = 6),
+or :func:`run_skeleton` with :func:`sizes_for` of a built experiment.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import multiprocessing
+import os
+import struct
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any
+
+_STAMP = struct.Struct("<q")
+
+
+@dataclass(frozen=True)
+class Sizes:
+    """Team shape and payload sizes (bytes) of one scenario's messages."""
+
+    agents: tuple[int, ...]
+    in_ids: tuple[tuple[int, ...], ...]
+    meas: tuple[int, ...]
+    truth: int
+    est: int
+    done: tuple[int, ...]
+
+
+def sizes_for(exp: Any) -> Sizes:
+    """The runtime's encoded message sizes for experiment ``exp``."""
+    import numpy as np
+
+    from transport.codec import PLANT_ID, Message, encode
+
+    ids = list(exp.agent_ids)
+    ins = [tuple(ids[j] for j in exp.in_neighbours(i)) for i in range(exp.N)]
+    outs = [[ids[j] for j in exp.out_neighbours(i)] for i in range(exp.N)]
+    x = np.ones(exp.n)
+    meas = tuple(len(encode(Message(kind="meas", sender=PLANT_ID, stamp=123456, meta={"member": True, "nomeas": False},
+                                    arrays={"y": np.ones(len(exp.agent_rows[i])), "wait": np.ones(len(ins[i]))})))
+                 for i in range(exp.N))
+    truth = len(encode(Message(kind="truth", sender=PLANT_ID, stamp=123456, arrays={"x": x})))
+    est = len(encode(Message(kind="est", sender=ids[0], stamp=123456, arrays={"x": x})))
+    done = tuple(len(encode(Message(kind="done", sender=ids[i], stamp=123456, arrays={"x": x, "to": np.ones(len(outs[i]))})))
+                 for i in range(exp.N))
+    return Sizes(tuple(ids), tuple(ins), meas, truth, est, done)
+
+
+def ring_sizes(N: int, n: int = 6) -> Sizes:
+    ids = tuple(range(1, N + 1))
+    ins = tuple((ids[(i - 1) % N], ids[(i + 1) % N]) for i in range(N))
+    return Sizes(ids, ins, tuple([90] * N), 100, 100, tuple([110] * N))
+
+
+def _payload(size: int, k: int) -> bytes:
+    return _STAMP.pack(k) + bytes(max(0, size - 8))
+
+
+async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: Any, conn: Any) -> None:
+    from transport.keys import Keys
+    from transport.zenoh_bus import ZenohBus
+    from transport.zenoh_session import close_session, open_session
+
+    keys = Keys(run)
+    session = open_session(opts)
+    bus = ZenohBus(session, asyncio.get_running_loop())
+    q: asyncio.Queue = asyncio.Queue(maxsize=1 << 16)
+    ids = sizes.agents
+    N = len(ids)
+    try:
+        if role == "plant":
+            bus.subscribe(keys.ctl_pattern("done"), q)
+            bus.subscribe(keys.ctl_pattern("ready"), q)
+            bus.watch(keys.alive_pattern(), q)
+            bus.announce(keys.alive("plant", 0))
+            ready: set[str] = set()
+            monitor = False
+            while len(ready) < N or not monitor:
+                key, p = await q.get()
+                if type(p) is bool:
+                    monitor = monitor or (p and "/alive/monitor/" in key)
+                elif "/ready/" in key:
+                    ready.add(key)
+            loc = [keys.plant_loc(a) for a in ids]
+            truth = keys.plant_truth()
+            t0 = time.perf_counter()
+            for k in range(rounds):
+                bus.publish(truth, _payload(sizes.truth, k))
+                for i in range(N):
+                    bus.publish(loc[i], _payload(sizes.meas[i], k))
+                got = 0
+                while got < N:
+                    key, p = await q.get()
+                    if type(p) is bytes and "/done/" in key and _STAMP.unpack_from(p)[0] == k:
+                        got += 1
+            elapsed = time.perf_counter() - t0
+            for i in range(N):
+                bus.publish(loc[i], _STAMP.pack(-1))
+            bus.publish(truth, _STAMP.pack(-1))
+            conn.send({"rounds": rounds, "elapsed": elapsed, "rounds_per_s": rounds / elapsed})
+            await asyncio.sleep(0.05)
+        elif role == "monitor":
+            bus.subscribe(keys.plant_truth(), q)
+            bus.subscribe(keys.ctl_pattern("done"), q)
+            bus.announce(keys.alive("monitor", 0))
+            count = 0
+            while True:
+                key, p = await q.get()
+                count += 1
+                if key.endswith("/truth") and _STAMP.unpack_from(p)[0] < 0:
+                    break
+        else:
+            me = ids[idx]
+            ins = sizes.in_ids[idx]
+            bus.subscribe(keys.plant_loc(me), q)
+            for j in ins:
+                bus.subscribe(keys.est(j), q)
+            bus.watch(keys.alive_pattern(), q)
+            bus.announce(keys.alive("agent", me))
+            need = {"plant", "monitor"} | {str(j) for j in ins}
+            seen: set[str] = set()
+            est_key, done_key = keys.est(me), keys.ctl("done", me)
+            arrived: dict[int, int] = {}
+            meas_k: int | None = None
+            sent_ready = False
+            while True:
+                if not sent_ready and need <= seen:
+                    bus.publish(keys.ctl("ready", me), b"r")
+                    sent_ready = True
+                try:
+                    key, p = await asyncio.wait_for(q.get(), 0.1) if not sent_ready else await q.get()
+                except asyncio.TimeoutError:
+                    continue
+                if type(p) is bool:
+                    parts = key.split("/")
+                    seen.add(parts[-2] if parts[-2] != "agent" else parts[-1])
+                    continue
+                k = _STAMP.unpack_from(p)[0]
+                if "/plant/loc/" in key:
+                    if k < 0:
+                        break
+                    meas_k = k
+                else:
+                    arrived[k] = arrived.get(k, 0) + 1
+                if meas_k is not None and (meas_k == 0 or arrived.get(meas_k - 1, 0) >= len(ins)):
+                    arrived.pop(meas_k - 1, None)
+                    bus.publish(est_key, _payload(sizes.est, meas_k))
+                    bus.publish(done_key, _payload(sizes.done[idx], meas_k))
+                    meas_k = None
+    finally:
+        bus.close()
+        close_session(session)
+
+
+def _child(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: Any, conn: Any) -> None:
+    asyncio.run(_main(role, idx, sizes, rounds, run, opts, conn))
+    os._exit(0)
+
+
+def run_skeleton(sizes: Sizes, rounds: int = 2000, *, timeout: float = 120.0) -> dict[str, float]:
+    """Run the skeleton; returns ``{"rounds", "elapsed", "rounds_per_s"}`` (lockstep, timed by the plant)."""
+    import uuid
+
+    from transport.zenoh_session import SessionOptions, free_tcp_port, tcp_endpoint
+
+    N = len(sizes.agents)
+    names = ["plant", "monitor"] + [f"agent{i}" for i in range(N)]
+    ports: list[int] = []
+    while len(ports) < len(names):
+        p = free_tcp_port()
+        if p not in ports:
+            ports.append(p)
+    eps = [tcp_endpoint(p) for p in ports]
+    ctx = multiprocessing.get_context("spawn")
+    recv, send = ctx.Pipe(duplex=False)
+    run = f"skeleton-{uuid.uuid4().hex[:8]}"
+    procs = []
+    try:
+        for c, name in enumerate(names):
+            opts = SessionOptions(mode="peer", listen=(eps[c],), connect=tuple(e for i, e in enumerate(eps) if i != c))
+            role = name if c < 2 else "agent"
+            p = ctx.Process(target=_child, args=(role, c - 2, sizes, rounds, run, opts, send if c == 0 else None),
+                            daemon=True)
+            p.start()
+            procs.append(p)
+        send.close()
+        if not recv.poll(timeout):
+            raise TimeoutError(f"the skeleton did not finish within {timeout:g} s")
+        return recv.recv()
+    finally:
+        for p in procs:
+            p.join(3.0)
+            if p.exitcode is None:
+                p.kill()
+                p.join(1.0)
+        recv.close()
+
+
+if __name__ == "__main__":
+    N = int(sys.argv[1]) if len(sys.argv) > 1 else 5
+    R = int(sys.argv[2]) if len(sys.argv) > 2 else 2000
+    print(run_skeleton(ring_sizes(N), R))
