@@ -78,17 +78,47 @@ def cli() -> None:
     """Resilient distributed state estimation: simulate, run and check scenarios."""
 
 
+def rerun_options(fn: Callable) -> Callable:
+    """The Rerun sink flags every run command shares."""
+    fn = click.option("--grpc-port", type=click.IntRange(1, 65535), default=None,
+                      help="Port of the gRPC server the web viewer reads from (default 9876).")(fn)
+    fn = click.option("--web-port", type=click.IntRange(1, 65535), default=None,
+                      help="Port of the web viewer (default 9090).")(fn)
+    fn = click.option("--serve-web", is_flag=True, help="Serve the web viewer so a browser (also on another machine) can watch live; the URL is printed.")(fn)
+    fn = click.option("--viewer", is_flag=True, help="Spawn the native Rerun viewer (needs a display).")(fn)
+    fn = click.option("--no-rerun", is_flag=True, help="No Rerun output at all (benchmarks).")(fn)
+    fn = click.option("--rrd", type=click.Path(dir_okay=False, path_type=Path), default=None,
+                      help="Recording file (default: recording.rrd in the run directory).")(fn)
+    return fn
+
+
+def dashboard_options(run_dir: Path, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
+                      web_port: int | None, grpc_port: int | None):
+    from .dashboard import DashboardOptions
+
+    if no_rerun:
+        if viewer or serve_web or rrd:
+            raise ScenarioError("--no-rerun cannot be combined with --rrd, --viewer or --serve-web", source="command line")
+        return None
+    return DashboardOptions(rrd=rrd or run_dir / "recording.rrd", viewer=viewer, serve_web=serve_web,
+                            web_port=web_port, grpc_port=grpc_port)
+
+
 @cli.command()
 @scenario_options
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Run directory (default: runs/NAME-TIMESTAMP).")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
+@rerun_options
 @_handle_errors
-def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, progress: bool) -> None:
+def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, progress: bool,
+             rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool, web_port: int | None,
+             grpc_port: int | None) -> None:
     """Run SCENARIO in the in-process lockstep simulator and write a run directory.
 
-    Writes manifest.json, design.json, metrics.parquet and summary.json, prints the summary
-    table and each [expect] bound with its measured value.
+    Writes manifest.json, design.json, metrics.parquet, summary.json and the Rerun
+    recording recording.rrd, prints the summary table and each [expect] bound with its
+    measured value.
     """
     from .console import expectations_table, out as console, round_progress, summary_table
     from .rundir import default_run_dir, write_design, write_json, write_manifest, write_metrics
@@ -101,8 +131,20 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
     run_id = uuid.uuid4().hex[:12]
     write_manifest(run_dir, exp, frozen, driver="simulate", run_id=run_id)
     write_design(run_dir, exp)
-    with round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress) as update:
-        res = run_sim(exp, progress=update)
+    dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
+    dash = None
+    if dopts is not None:
+        from .dashboard import Dashboard
+
+        dash = Dashboard(exp, run_id=run_id, options=dopts)
+        for what, url in dopts.urls.items():
+            console.print(f"rerun {what}: {url}")
+    try:
+        with round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress) as update:
+            res = run_sim(exp, progress=update, dashboard=dash)
+    finally:
+        if dash is not None:
+            dash.close()
     results = evaluate(exp, res.monitor, res.regular)
     summary = summarise(exp, res.monitor, res.regular, res.links)
     summary["expectations"] = [r.as_dict() for r in results]
