@@ -1,0 +1,40 @@
+"""``rse report``: summary table, figures and comparisons of run directories."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from .cli import _handle_errors, cli
+
+
+@cli.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("other", type=click.Path(path_type=Path), required=False)
+@click.option("--png", "png_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Write static figures (errors.png, state_NAME.png, compare.png) into this directory (needs the plot extra).")
+@_handle_errors
+def report(run_dir: Path, other: Path | None, png_dir: Path | None) -> None:
+    """Print the summary table of RUN_DIR (and compare it with OTHER when given).
+
+    The table lists, per agent and state block, the final error, the worst error in the
+    output window, the convergence round, detected attacks and the in-link counters. It is
+    read from the run directory only, so runs of `rse simulate` and `rse run` report alike.
+    """
+    from .console import out
+    from .report import compare_table, figure_compare, figure_errors, figure_states, load_run, report_table
+
+    a = load_run(run_dir)
+    out.print(report_table(a))
+    b = load_run(other) if other is not None else None
+    if b is not None:
+        out.print(report_table(b))
+        out.print(compare_table(a, b))
+    if png_dir is not None:
+        png_dir.mkdir(parents=True, exist_ok=True)
+        paths = [figure_errors(a, png_dir), *figure_states(a, png_dir)]
+        if b is not None:
+            paths.append(figure_compare(a, b, png_dir))
+        for p in paths:
+            out.print(f"figure: {p}")
