@@ -104,6 +104,20 @@ def dashboard_options(run_dir: Path, rrd: Path | None, no_rerun: bool, viewer: b
                             web_port=web_port, grpc_port=grpc_port)
 
 
+def wait_while_serving(url: str) -> None:
+    """After a run with --serve-web: keep the viewer up until Ctrl-C / SIGTERM."""
+    import signal
+    import threading
+
+    from .console import out as console
+
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    console.print(f"the run is finished; still serving the recording at {url} (Ctrl-C to stop)")
+    done.wait()
+
+
 @cli.command()
 @scenario_options
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
@@ -142,9 +156,12 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
     try:
         with round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress) as update:
             res = run_sim(exp, progress=update, dashboard=dash)
-    finally:
+    except BaseException:
         if dash is not None:
             dash.close()
+        raise
+    if dash is not None:
+        dash.flush()  # the recording file is complete; a served viewer stays up below
     results = evaluate(exp, res.monitor, res.regular)
     summary = summarise(exp, res.monitor, res.regular, res.links)
     summary["expectations"] = [r.as_dict() for r in results]
@@ -156,6 +173,12 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
         console.print(expectations_table(results))
     console.print(f"run directory: {run_dir}")
     failed = [r for r in results if not r.ok]
+    if dash is not None:
+        try:
+            if dopts.serve_web:
+                wait_while_serving(dopts.urls.get("web", ""))
+        finally:
+            dash.close()
     if failed:
         raise ExpectationFailed(f"{len(failed)} of {len(results)} expectation(s) failed: " + "; ".join(r.label for r in failed))
 
@@ -193,23 +216,53 @@ def bench() -> None:
 @bench.command("simulate")
 @scenario_options
 @click.option("--repeat", type=click.IntRange(1, 100), default=3, show_default=True, help="Timed runs (best and median are printed).")
+@click.option("--rerun-overhead", is_flag=True, help="Also time the same runs streaming to a Rerun recording and print the overhead.")
 @_handle_errors
-def bench_simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, repeat: int) -> None:
-    """Agent-rounds per second of the in-process simulator on SCENARIO (monitor included, no files written)."""
+def bench_simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, repeat: int, rerun_overhead: bool) -> None:
+    """Agent-rounds per second of the in-process simulator on SCENARIO (monitor included, no files written).
+
+    With --rerun-overhead the runs alternate with and without the dashboard (writing a
+    temporary .rrd) and the relative cost of the logging in the rounds is printed.
+    """
     import platform
     import statistics
+    import tempfile
 
     from .console import out as console
     from .simulate import simulate as run_sim
 
-    rates = []
-    for _ in range(repeat):
+    def once(with_rerun: bool) -> float:
         exp, _ = load_experiment(scenario, overrides, seed)  # fresh state every run
-        res = run_sim(exp)
-        rates.append(res.agent_rounds_per_s)
-    console.print(f"scenario {exp.scenario.run.name}: {exp.N} agents, {res.rounds} rounds, n = {exp.n}")
+        if not with_rerun:
+            return run_sim(exp).elapsed
+        from .dashboard import Dashboard, DashboardOptions
+
+        with tempfile.TemporaryDirectory() as tmp:
+            dash = Dashboard(exp, run_id="bench", options=DashboardOptions(rrd=Path(tmp) / "bench.rrd"))
+            try:
+                return run_sim(exp, dashboard=dash).elapsed
+            finally:
+                dash.close()
+
+    once(False)  # warm-up (imports, caches)
+    if rerun_overhead:
+        once(True)
+    plain, logged = [], []
+    for _ in range(repeat):
+        plain.append(once(False))
+        if rerun_overhead:
+            logged.append(once(True))
+    exp, _ = load_experiment(scenario, overrides, seed)
+    work = exp.N * (exp.n_rounds + 1)
+    rates = [work / t for t in plain]
+    console.print(f"scenario {exp.scenario.run.name}: {exp.N} agents, {exp.n_rounds + 1} rounds, n = {exp.n}")
     console.print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}")
     console.print(f"simulator agent-rounds/s: median {statistics.median(rates):,.0f}, best {max(rates):,.0f} over {repeat} runs")
+    if rerun_overhead:
+        ratio = [l / p for l, p in zip(logged, plain)]
+        console.print(f"with the Rerun dashboard: median {statistics.median([work / t for t in logged]):,.0f} agent-rounds/s; "
+                      f"logging overhead in the rounds: median {100 * (statistics.median(ratio) - 1):.1f}% "
+                      f"(min {100 * (min(ratio) - 1):.1f}%, max {100 * (max(ratio) - 1):.1f}%)")
 
 
 def main() -> None:
@@ -220,3 +273,4 @@ if __name__ == "__main__":
     main()
 
 from . import cli_net  # noqa: E402,F401
+from . import cli_report  # noqa: E402,F401

@@ -92,7 +92,7 @@ class Dashboard:
             sinks.append(rr.FileSink(str(options.rrd)))
         server = None
         if options.serve_web:
-            server = rr.GrpcServerSink(bind_ip=options.bind_ip, port=options.grpc_port or 9876)
+            server = rr.GrpcServerSink(bind_ip=options.bind_ip, port=options.grpc_port or 9876, cors_allow_origin=["*"])
             sinks.append(server)
         if options.viewer:
             port = options.viewer_port
@@ -117,14 +117,28 @@ class Dashboard:
 
     # ------------------------------------------------------------------ layout
     def blueprint(self, rrb: Any) -> Any:
-        plots = [rrb.TimeSeriesView(origin="/errors", name="log10 error norm per agent and block")]
+        """Errors per block in tabs (relative errors first for unstable plants), the map
+        with the links, the true state against estimates, and the link counters."""
+        blocks = list(self.exp.blocks)
+        order = [b for b in blocks if b != "x"] + ["x"] if len(blocks) > 1 else blocks
+
+        whole = [rrb.VisibleTimeRange(tl, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite())
+                 for tl in ("k", "t")]  # show the whole run, not a trailing window
+
+        def tabs(root: str, label: str):
+            return rrb.Tabs(*[rrb.TimeSeriesView(origin=f"/{root}/{b}", name=f"{label}: {b}", time_ranges=whole) for b in order])
+
         if self._has_relative():
-            plots.append(rrb.TimeSeriesView(origin="/relative_errors", name="log10 relative error"))
-        right = [rrb.Spatial2DView(origin="/map", name="map and links delivered this round")]
-        right.append(rrb.TimeSeriesView(origin="/state", name="true state vs estimates"))
-        right.append(rrb.TimeSeriesView(origin="/counters", name="link counters"))
+            left = [tabs("relative_errors", "log10 relative error"), tabs("errors", "log10 error")]
+        else:
+            left = [tabs("errors", "log10 error")]
+        right = [
+            rrb.Spatial2DView(origin="/map", name="map: agents, locations, links delivered (green) / dropped (grey)"),
+            rrb.TimeSeriesView(origin="/state", name="true state vs estimates", time_ranges=whole),
+            rrb.TimeSeriesView(origin="/counters", name="link counters", time_ranges=whole),
+        ]
         return rrb.Blueprint(
-            rrb.Horizontal(rrb.Vertical(*plots), rrb.Vertical(*right), column_shares=[3, 2]),
+            rrb.Horizontal(rrb.Vertical(*left), rrb.Vertical(*right), column_shares=[3, 2]),
             rrb.TimePanel(state="collapsed"),
             collapse_panels=True,
         )
@@ -148,12 +162,15 @@ class Dashboard:
                 rec.log(f"relative_errors/{b}", style, static=True)
         locs, pos = agent_layout(exp)
         self._static_pos = pos
+        pts = pos if locs is None else np.vstack([pos, locs[np.isfinite(locs).all(axis=1)]])
+        span = float(np.ptp(pts, axis=0).max()) or 1.0
+        r_agent, r_loc, r_link = 0.02 * span, 0.008 * span, 0.003 * span
         colors = [ADVERSARY if i in exp.byzantine else REGULAR_COLORS[i % len(REGULAR_COLORS)] for i in range(exp.N)]
-        rec.log("map/agents", rr.Points2D.from_fields(colors=colors, radii=0.9, labels=[str(a) for a in exp.agent_ids]), static=True)
-        rec.log("map/links/delivered", rr.Arrows2D.from_fields(colors=[GREEN], radii=0.08), static=True)
-        rec.log("map/links/dropped", rr.Arrows2D.from_fields(colors=[GREY], radii=0.04), static=True)
+        rec.log("map/agents", rr.Points2D.from_fields(colors=colors, radii=r_agent, labels=[str(a) for a in exp.agent_ids]), static=True)
+        rec.log("map/links/delivered", rr.Arrows2D.from_fields(colors=[GREEN], radii=r_link), static=True)
+        rec.log("map/links/dropped", rr.Arrows2D.from_fields(colors=[GREY], radii=0.5 * r_link), static=True)
         if locs is not None:
-            rec.log("map/locations", rr.Points2D(locs, radii=0.4, colors=[(120, 120, 120)],
+            rec.log("map/locations", rr.Points2D(locs, radii=r_loc, colors=[(120, 120, 120)],
                                                  labels=[f"loc {b + 1}" for b in range(len(locs))]), static=True)
         marks = [a for a in exp.scenario.attacks]
         for a in marks:
@@ -208,18 +225,9 @@ class Dashboard:
         self._last = int(rows[-1])
 
     def _plots(self) -> list[tuple[str, np.ndarray, list[int]]]:
-        exp = self.exp
-        out = []
-        for p in exp.scenario.output.plots:
-            row = np.zeros(exp.n)
-            for idx, w in zip(p.states, p.weights or [1.0] * len(p.states)):
-                row[idx - 1] += w
-            out.append((p.name, row, list(p.agents) if p.agents else [exp.agent_ids[0]]))
-        if not out:
-            row = np.zeros(exp.n)
-            row[0] = 1.0
-            out.append(("x1", row, [exp.agent_ids[0]]))
-        return out
+        from .monitor import plot_rows
+
+        return plot_rows(self.exp)
 
     def _log_map(self, rows: np.ndarray, delivered: dict[int, np.ndarray] | None) -> None:
         """Agent positions and delivered / dropped links of the map frames in ``rows``, as
@@ -252,7 +260,11 @@ class Dashboard:
     def is_map_frame(self, k: int) -> bool:
         return k % self._map_every == 0 or k == self.exp.n_rounds
 
+    def flush(self) -> None:
+        self.rec.flush()
+
     def close(self) -> None:
+        """Flush and close every sink (the file, a served gRPC endpoint, a viewer link)."""
         try:
             self.rec.flush()
         finally:

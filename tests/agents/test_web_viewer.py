@@ -1,0 +1,79 @@
+"""--serve-web: the web viewer page and the gRPC endpoint answer while a run is served,
+headless Chromium loads the page (where Debian's chromium is installed), and Ctrl-C stops
+the server promptly."""
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import ROOT, SCENARIOS
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(predicate, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.2)
+    return False
+
+
+def answers(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+@pytest.mark.multiprocess
+def test_serve_web_serves_the_viewer_and_stops_on_ctrl_c(tmp_path):
+    web, grpc = free_port(), free_port()
+    exe = shutil.which("rse")
+    cmd = [exe] if exe else [sys.executable, "-m", "agents.cli"]
+    cmd += ["simulate", str(SCENARIOS / "mitra_cells.toml"), "--out", str(tmp_path / "run"), "--no-progress",
+            "--serve-web", "--web-port", str(web), "--grpc-port", str(grpc)]
+    env = dict(os.environ, COLUMNS="200")
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, env=env)
+    try:
+        assert wait_for(lambda: answers(web) and answers(grpc), 60), "viewer ports never opened"
+        with urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10) as r:
+            body = r.read().decode("utf-8", "replace")
+            assert r.status == 200
+        assert "rerun" in body.lower()
+        url = f"http://127.0.0.1:{web}/?url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy"
+        chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+        if chromium:
+            shot = tmp_path / "viewer.png"
+            subprocess.run([chromium, "--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                            "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update",
+                            "--disable-sync", f"--user-data-dir={tmp_path / 'chromium'}", "--window-size=1600,900",
+                            "--virtual-time-budget=10000", f"--screenshot={shot}", url],
+                           capture_output=True, timeout=90)
+            assert shot.exists() and shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert (tmp_path / "run" / "recording.rrd").stat().st_size > 10_000
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=10)
+        assert rc == 0
+        assert time.monotonic() - t0 < 3.0
+        out = proc.stdout.read()
+        assert f"http://127.0.0.1:{web}/?url=" in out.replace("\n", "")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
