@@ -26,19 +26,22 @@ def _run_options(fn: Callable) -> Callable:
                       help="Realtime: the plant's tick rate (required). Lockstep: an upper bound on rounds/s.")(fn)
     fn = click.option("--mode", type=click.Choice(["lockstep", "realtime"]), default="lockstep", show_default=True,
                       help="lockstep: equal to rse simulate; realtime: wall-clock ticks, late messages by stamp.")(fn)
+    fn = click.option("--warmup", type=click.FloatRange(min=0.0), default=3.0, show_default=True,
+                      help="Scenario seconds an agent joining a running team listens before it publishes.")(fn)
     fn = click.option("--startup-timeout", type=click.FloatRange(min=0.1), default=60.0, show_default=True,
                       help="Seconds to wait for the team to assemble.")(fn)
     return fn
 
 
-def _config(mode: str, rate: float | None, deadline: float, startup_timeout: float, save_estimates: bool = False):
+def _config(mode: str, rate: float | None, deadline: float, startup_timeout: float, save_estimates: bool = False,
+            warmup: float = 3.0):
     from .net.roles import RunConfig
 
     try:
         return RunConfig(mode=mode, rate=rate, deadline=deadline, startup_timeout=startup_timeout,
-                         save_estimates=save_estimates)
+                         save_estimates=save_estimates, warmup=warmup)
     except ValueError as exc:
-        raise click.UsageError(str(exc)) from None
+        raise ScenarioError(str(exc)) from None
 
 
 def _endpoints(connect: tuple[str, ...]) -> tuple[str, ...]:
@@ -47,7 +50,7 @@ def _endpoints(connect: tuple[str, ...]) -> tuple[str, ...]:
     try:
         return tuple(normalize_endpoint(e) for e in connect)
     except ValueError as exc:
-        raise click.BadParameter(str(exc), param_hint="--connect") from None
+        raise ScenarioError(f"--connect: {exc}") from None
 
 
 def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
@@ -87,8 +90,8 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
 @_handle_errors
 def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, mode: str, rate: float | None,
-        deadline: float, startup_timeout: float, connect: tuple[str, ...], run_id: str | None, save_estimates: bool,
-        progress: bool) -> None:
+        deadline: float, startup_timeout: float, warmup: float, connect: tuple[str, ...], run_id: str | None,
+        save_estimates: bool, progress: bool) -> None:
     """Run SCENARIO as a team of processes over Zenoh: plant, monitor, one process per agent.
 
     Writes the same run directory as `rse simulate` (manifest.json, design.json,
@@ -101,13 +104,13 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
     from .net.launcher import launch
     from .rundir import default_run_dir
 
-    cfg = _config(mode, rate, deadline, startup_timeout, save_estimates)
+    cfg = _config(mode, rate, deadline, startup_timeout, save_estimates, warmup)
     eps = _endpoints(connect)
     if run_id is not None:
         try:
             validate_run_id(run_id)
         except ValueError as exc:
-            raise click.BadParameter(str(exc), param_hint="--run-id") from None
+            raise ScenarioError(f"--run-id: {exc}") from None
     exp, frozen = load_experiment(scenario, overrides, seed)
     run_dir = out or default_run_dir(exp.scenario.run.name)
     res = launch(scenario, overrides, seed, run_dir, cfg, connect=eps, progress=progress, run_id=run_id, exp=exp, frozen=frozen)
@@ -147,7 +150,8 @@ def _role_options(fn: Callable) -> Callable:
 
 def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[str, ...], seed: int | None,
                team: Path | None, run_id: str | None, client: bool, connect: tuple[str, ...], listen: str | None,
-               mode: str, rate: float | None, deadline: float, startup_timeout: float, verbose: bool, **extra: Any):
+               mode: str, rate: float | None, deadline: float, startup_timeout: float, warmup: float, verbose: bool,
+               _validate: bool = True, **extra: Any):
     from transport.keys import validate_run_id
     from transport.zenoh_session import SessionOptions, normalize_endpoint, tcp_endpoint
 
@@ -158,7 +162,7 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
     src = lambda name: ctx.get_parameter_source(name) == click.core.ParameterSource.DEFAULT  # noqa: E731
     scenario = scenario or (Path(data["scenario"]) if data.get("scenario") else None)
     if scenario is None:
-        raise click.UsageError("give SCENARIO (or --team RUN_DIR/team.json)")
+        raise ScenarioError("give SCENARIO (or --team RUN_DIR/team.json)")
     overrides = overrides or tuple(data.get("overrides", ()))
     seed = seed if seed is not None else data.get("seed")
     if data and src("mode"):
@@ -169,15 +173,15 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
         deadline = data.get("deadline", deadline)
     run_id = run_id or data.get("run_id")
     if not run_id:
-        raise click.UsageError("give --run-id (or --team RUN_DIR/team.json)")
+        raise ScenarioError("give --run-id (or --team RUN_DIR/team.json)")
     try:
         validate_run_id(run_id)
     except ValueError as exc:
-        raise click.BadParameter(str(exc), param_hint="--run-id") from None
+        raise ScenarioError(f"--run-id: {exc}") from None
     eps = _endpoints(connect)
     if client:
         if not eps:
-            raise click.UsageError("--client needs --connect tcp/HOST:PORT (a Zenoh router)")
+            raise ScenarioError("--client needs --connect tcp/HOST:PORT (a Zenoh router)")
         session = SessionOptions.client(eps)
     elif data and not eps and listen is None:
         session = session_for(data, label)
@@ -185,12 +189,13 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
         try:
             lst = normalize_endpoint(listen) if listen else (data.get("endpoints", {}).get(label) or tcp_endpoint(0))
         except ValueError as exc:
-            raise click.BadParameter(str(exc), param_hint="--listen") from None
+            raise ScenarioError(f"--listen: {exc}") from None
         others = eps or tuple(v for k, v in data.get("endpoints", {}).items() if k != label)
         session = SessionOptions(mode="peer", listen=(lst,), connect=others)
-    cfg = _config(mode, rate, deadline, startup_timeout, extra.pop("save_estimates", False))
+    cfg = _config(mode, rate, deadline, startup_timeout, extra.pop("save_estimates", False), warmup)
     # validate the scenario here, so that a bad one is exit status 2 with the usual message
-    load_experiment(scenario, overrides, seed)
+    if _validate:
+        load_experiment(scenario, overrides, seed)
     return ChildSpec(role=role, scenario=str(scenario), overrides=tuple(overrides), seed=seed, run_id=run_id, cfg=cfg,
                      session=session, log_level=logging.INFO if verbose else logging.WARNING, **extra)
 
@@ -221,10 +226,20 @@ def agent(agent_id: int, **kw: Any) -> None:
 
     Against a team started by `rse run`: `rse agent --id 3 --team RUN_DIR/team.json`.
     """
-    spec = _role_spec("agent", f"agent {agent_id}", agent_id=agent_id, **kw)
-    exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
-    if agent_id not in exp.agent_ids:
-        raise ScenarioError(f"--id {agent_id}: no such agent; agents are {', '.join(map(str, exp.agent_ids))}")
+    team = kw.get("team")
+    cached = None
+    if team is not None and not kw.get("overrides") and kw.get("seed") is None and kw.get("scenario") is None:
+        # the launcher's built experiment and this agent's fresh node: no design, fast rejoin
+        d = (team if team.is_dir() else team.parent) / "team"
+        if (d / "experiment.pkl").is_file() and (d / f"agent-{agent_id}.pkl").is_file():
+            cached = ((d / "experiment.pkl").read_bytes(), (d / f"agent-{agent_id}.pkl").read_bytes())
+    spec = _role_spec("agent", f"agent {agent_id}", agent_id=agent_id, _validate=cached is None, **kw)
+    if cached is not None:
+        spec.experiment, spec.node = cached
+    else:
+        exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
+        if agent_id not in exp.agent_ids:
+            raise ScenarioError(f"--id {agent_id}: no such agent; agents are {', '.join(map(str, exp.agent_ids))}")
     _run_single(spec)
 
 
@@ -274,7 +289,14 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
     line = f"rse run lockstep:      {rate:10,.0f} rounds/s  ({rate * exp.N:,.0f} agent-rounds/s)"
     console.print(line)
     if skeleton:
-        from benchmarks.zenoh_skeleton import run_skeleton, sizes_for
+        root = str(Path(__file__).resolve().parents[1])  # benchmarks/ lives next to agents/
+        if root not in sys.path:
+            sys.path.insert(0, root)
+        try:
+            from benchmarks.zenoh_skeleton import run_skeleton, sizes_for
+        except ImportError:
+            raise RSEError("the skeleton benchmark (benchmarks/zenoh_skeleton.py) is not available in this "
+                           "installation; run from a source checkout or use --no-skeleton") from None
 
         sk = run_skeleton(sizes_for(exp), rounds=perf["rounds"])
         console.print(f"bare Zenoh skeleton:   {sk['rounds_per_s']:10,.0f} rounds/s  (same processes and message sizes)")

@@ -353,9 +353,13 @@ def launch(
     from agents.simulate import make_channel, make_nodes
 
     nodes = make_nodes(exp, make_channel(exp))  # built once, as the simulator does
+    cache = run_dir / "team"
+    cache.mkdir(exist_ok=True)
+    (cache / "experiment.pkl").write_bytes(base["experiment"])
     for a, node in zip(exp.agent_ids, nodes):
-        specs[f"agent {a}"] = ChildSpec(role="agent", agent_id=a, session=sessions[f"agent {a}"],
-                                        node=pickle.dumps(node), **base)
+        blob = pickle.dumps(node)
+        (cache / f"agent-{a}.pkl").write_bytes(blob)  # a fresh node, for `rse agent --team` (fast rejoin)
+        specs[f"agent {a}"] = ChildSpec(role="agent", agent_id=a, session=sessions[f"agent {a}"], node=blob, **base)
     procs: dict[str, Any] = {}
     failures: list[str] = []
     leaves: list[str] = []

@@ -83,6 +83,9 @@ class RunConfig:
     startup_timeout : seconds to wait for the team to assemble
     save_estimates : the monitor also writes ``estimates.npy`` and ``truth.npy``
     linger : seconds the monitor waits for the final counters after the last round
+    warmup : scenario seconds an agent that joins a running team (round > 0) listens
+        before it publishes (its estimate converges first instead of disturbing its
+        neighbours); the monitor records it from its first round
     """
 
     mode: str = "lockstep"
@@ -91,6 +94,7 @@ class RunConfig:
     startup_timeout: float = 60.0
     save_estimates: bool = False
     linger: float = 2.0
+    warmup: float = 3.0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -450,6 +454,7 @@ class AgentProcess(Role):
         self._ready_key = keys.ctl("ready", agent_id)
         self._loc_key = keys.plant_loc(agent_id)
         self._last_ready = 0.0
+        self.silent_until = 0
 
     def _payload_shape(self) -> tuple[int, ...]:
         """The shape of an estimate message: a dry run of a copy of this agent's estimator
@@ -470,7 +475,7 @@ class AgentProcess(Role):
         if role == "plant":
             if alive:
                 self.plant_seen_at = time.monotonic()
-            elif self.member or self.stop is None:
+            elif self.stop is None:
                 log.warning("agent %d: the plant left", self.id)
 
     def handle_data(self, key: str, payload: bytes) -> None:
@@ -492,6 +497,8 @@ class AgentProcess(Role):
             member = bool(m.meta.get("member", False))
             if member and not self.member:
                 self.member = True
+                if m.stamp > 0:
+                    self.silent_until = m.stamp + int(math.ceil(self.cfg.warmup / self.exp.dt))
                 log.info("agent %d: joined the team at round %d", self.id, m.stamp)
             elif not member and self.member:
                 self.member = False
@@ -532,7 +539,9 @@ class AgentProcess(Role):
         msg = node.publish(k, out) if node.strategy is not None else out
         aid = self.id
         try:
-            if isinstance(msg, dict):
+            if k < self.silent_until:  # warming up after a late join: listen only
+                to, stamps = [], []
+            elif isinstance(msg, dict):
                 to, stamps = [], []
                 for tgt in self.out_ids:
                     payload = msg.get(tgt)

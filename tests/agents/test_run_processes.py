@@ -1,0 +1,245 @@
+"""``rse run`` with real processes over Zenoh on loopback.
+
+Every test is bounded (under 60 s) and kills its whole process group in ``finally``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pyarrow.parquet as pq
+import pytest
+
+from agents.cli import load_experiment
+from agents.simulate import simulate
+from tests.conftest import ROOT, SCENARIOS
+
+pytestmark = pytest.mark.multiprocess
+
+LKS = SCENARIOS / "lee_kim_shim.toml"
+SHORT = ("--set", "run.dt=0.01", "--set", "run.duration=12", "--set", "output.window=[8.0, 12.0]",
+         "--set", "expect.1.max=1.0")
+
+
+def _cmd(*args: str) -> list[str]:
+    exe = shutil.which("rse")
+    return [exe, *args] if exe else [sys.executable, "-c", "from agents.cli import main; main()", *args]
+
+
+def _env() -> dict:
+    e = dict(os.environ)
+    e.pop("RSE_DEBUG", None)
+    e["COLUMNS"] = "200"
+    return e
+
+
+class Procs:
+    """Processes started by a test, each in its own process group; all killed at the end."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, args: list[str], **kw) -> subprocess.Popen:
+        p = subprocess.Popen(args, cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             start_new_session=True, **kw)
+        self.procs.append(p)
+        return p
+
+    def kill_all(self) -> None:
+        for p in self.procs:
+            try:
+                os.killpg(p.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+            try:
+                p.communicate(timeout=5)
+            except Exception:
+                pass
+
+
+@pytest.fixture
+def procs():
+    ps = Procs()
+    try:
+        yield ps
+    finally:
+        ps.kill_all()
+
+
+def _wait_file(path: Path, timeout: float) -> dict:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError):
+            time.sleep(0.05)
+    raise AssertionError(f"{path} did not appear within {timeout} s")
+
+
+def _compare(out: Path, overrides: tuple[str, ...]) -> None:
+    exp, _ = load_experiment(LKS, overrides, None)
+    ref = simulate(exp, keep_trajectories=True)
+    est = np.load(out / "estimates.npy")
+    assert est.shape == ref.estimates.shape
+    scale = np.maximum(1.0, np.abs(ref.truth).max(axis=1))[:, None, None]
+    assert float(np.max(np.abs(est - ref.estimates) / scale)) <= 1e-12
+    np.testing.assert_array_equal(np.load(out / "truth.npy"), ref.truth)
+    summary = json.loads((out / "summary.json").read_text())
+    for key, c in ref.links.items():
+        got = summary["links"][key]
+        assert {k: got[k] for k in ("sent", "delivered", "dropped", "late")} == \
+            {k: c[k] for k in ("sent", "delivered", "dropped", "late")}, key
+
+
+INJECT = textwrap.dedent("""
+    import json, sys, time, msgpack, numpy as np
+    from transport.keys import Keys
+    from transport.zenoh_session import SessionOptions, open_session, close_session
+    team = json.load(open(sys.argv[1]))
+    keys = Keys(team["run_id"])
+    s = open_session(SessionOptions(mode="peer", connect=tuple(team["endpoints"].values())))
+    good = msgpack.packb({"v": 1, "kind": "est", "from": 2, "k": 3, "arr": {"x": [[6], bytes(48)]}})
+    bad = [b"\\xc1 random bytes", bytes(range(256)),
+           msgpack.packb({"v": 1, "kind": "est", "from": "two", "k": 3.5, "arr": []}),
+           msgpack.packb({"v": 1, "kind": "est", "from": 2, "k": 3, "arr": {"x": [[6], np.full(6, np.inf).tobytes()]}}),
+           msgpack.packb({"v": 1, "kind": "est", "from": 2, "k": 3, "arr": {"x": [[2, 3], bytes(48)]}}),
+           bytes(2 << 20),
+           good.replace(b"\\xa4from\\x02", b"\\xa4from\\x05")]
+    targets = [keys.est(2), keys.est(2, 3), keys.est(4), keys.plant_loc(1), keys.plant_truth(),
+               keys.ctl("done", 3), keys.ctl("ready", 5), keys.ctl("stats", 1), keys.ctl("ack", -2), keys.ctl("stop", -1)]
+    try:
+        end = time.monotonic() + float(sys.argv[2])
+        n = 0
+        while time.monotonic() < end:
+            for key in targets:
+                for b in bad:
+                    s.put(key, b)
+                    n += 1
+            time.sleep(0.05)
+        print(n)
+    finally:
+        close_session(s)
+""")
+
+
+def test_two_teams_at_once_equal_the_simulator_with_bad_bytes_injected(procs, tmp_path):
+    """Two rse run at the same time (one with drops and delays), an outside process
+    injecting bad messages into the first: both equal the simulator, nothing stops."""
+    lossy = SHORT + ("--set", "network.channel.drop_p=0.2", "--set", "network.channel.delay_max=2",
+                     "--set", "expect.0.max=1.0")
+    a, b = tmp_path / "a", tmp_path / "b"
+    pa = procs.start(_cmd("run", str(LKS), *SHORT, "--out", str(a), "--save-estimates", "--no-progress"))
+    pb = procs.start(_cmd("run", str(LKS), *lossy, "--out", str(b), "--save-estimates", "--no-progress"))
+    team = _wait_file(a / "team.json", 30)
+    inj = procs.start([sys.executable, "-c", INJECT, str(a / "team.json"), "12"])
+    outs = [p.communicate(timeout=55) for p in (pa, pb)]
+    inj.kill()
+    for p, (so, se) in zip((pa, pb), outs):
+        assert p.returncode == 0, se
+        assert "Traceback" not in se
+    _compare(a, tuple(SHORT[1::2]))
+    _compare(b, tuple(lossy[1::2]))
+    ta, tb = json.loads((a / "team.json").read_text()), json.loads((b / "team.json").read_text())
+    assert ta["run_id"] != tb["run_id"] and not set(ta["endpoints"].values()) & set(tb["endpoints"].values())
+    rej = json.loads((a / "summary.json").read_text())["rejected"]
+    assert {"2", "4", "plant", "3", "5", "1"} <= set(rej), rej
+    assert json.loads((b / "summary.json").read_text())["rejected"] == {}
+    assert {p.name for p in a.iterdir()} >= {"manifest.json", "design.json", "metrics.parquet", "summary.json"}
+    assert json.loads((a / "manifest.json").read_text())["driver"] == "run"
+    assert team["run_id"] == ta["run_id"]
+
+
+def test_kill_an_agent_and_restart_it(procs, tmp_path):
+    """Realtime at 100 Hz (dt = 0.01), the whole 40 s: kill agent 3 at t = 15 s, restart it
+    at t = 20 s with `rse agent --id 3 --team`; the others stay within the bounds, agent 3
+    re-converges by t = 30 s."""
+    out = tmp_path / "run"
+    p = procs.start(_cmd("run", str(LKS), "--set", "run.dt=0.01", "--mode", "realtime", "--rate", "100",
+                         "--out", str(out), "--no-progress"))
+    team = _wait_file(out / "team.json", 20)
+    pid3 = team["pids"]["agent 3"]
+
+    def wait_round(k: int) -> None:
+        end = time.monotonic() + 40
+        while time.monotonic() < end:
+            try:
+                if json.loads((out / "status.json").read_text())["round"] >= k:
+                    return
+            except (OSError, ValueError, KeyError):
+                pass
+            assert p.poll() is None, p.communicate()[1]
+            time.sleep(0.02)
+        raise AssertionError(f"round {k} not reached")
+
+    wait_round(1500)
+    os.kill(pid3, signal.SIGKILL)
+    wait_round(2000)
+    r = procs.start(_cmd("agent", "--id", "3", "--team", str(out / "team.json")))
+    so, se = p.communicate(timeout=40)
+    assert p.returncode == 0, se  # the scenario's [[expect]] bounds hold (exit 3 otherwise)
+    assert "agent 3 was killed by SIGKILL" in se
+    r.communicate(timeout=10)
+    assert r.returncode == 0
+    m = pq.read_table(out / "metrics.parquet").to_pydict()
+    k, agent, e = np.array(m["k"]), np.array(m["agent"]), np.array(m["error_inf"])
+    x = np.array(m["block"]) == "x"
+    t = k * 0.01
+    others = x & (agent != 3)
+    assert np.nanmax(e[others & (np.abs(t - 10.0) < 1e-9)]) <= 0.01
+    assert np.nanmax(e[others & (t >= 30.0)]) <= 0.25
+    a3 = x & (agent == 3)
+    assert np.isnan(e[a3 & (t > 17.5) & (t < 20.0)]).all()  # dead: NaN rows (killed at t ~ 15-16)
+    assert np.nanmax(e[a3 & (t >= 30.0)]) <= 0.25  # re-converged by t = 30
+    summary = json.loads((out / "summary.json").read_text())
+    events = [ev["event"] for ev in summary["membership"] if ev["role"] == "agent" and ev["id"] == 3]
+    assert events[:3] == ["join", "leave", "join"]
+
+
+def test_sigterm_stops_the_team_within_2_s(procs, tmp_path):
+    out = tmp_path / "run"
+    p = procs.start(_cmd("run", str(LKS), "--set", "run.dt=0.01", "--mode", "realtime", "--rate", "50",
+                         "--out", str(out), "--no-progress"))
+    team = _wait_file(out / "team.json", 30)
+    end = time.monotonic() + 30
+    while time.monotonic() < end:
+        try:
+            if json.loads((out / "status.json").read_text())["round"] > 5:
+                break
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.05)
+    children = [psutil.Process(pid) for pid in team["pids"].values()]
+    t0 = time.monotonic()
+    p.send_signal(signal.SIGTERM)
+    so, se = p.communicate(timeout=10)
+    assert time.monotonic() - t0 < 2.0
+    assert p.returncode == 130
+    assert "Traceback" not in se and "interrupted" in se
+    gone, alive = psutil.wait_procs(children, timeout=0.5)
+    assert not alive
+
+
+def test_bench_run_prints_both_rates(procs):
+    p = procs.start(_cmd("bench", "run", str(LKS), *SHORT))
+    so, se = p.communicate(timeout=55)
+    assert p.returncode == 0, se
+    assert "rse run lockstep:" in so and "bare Zenoh skeleton:" in so and "peak RSS per agent process" in so
+
+
+def test_bad_input_is_one_line(procs, tmp_path):
+    p = procs.start(_cmd("run", str(LKS), "--mode", "realtime", "--out", str(tmp_path / "r")))
+    so, se = p.communicate(timeout=30)
+    assert p.returncode == 2 and "realtime mode needs --rate" in se and "Traceback" not in se
+    p = procs.start(_cmd("agent", "--id", "3", "--team", str(tmp_path / "nope")))
+    so, se = p.communicate(timeout=30)
+    assert p.returncode == 2 and "no such team file" in se and "Traceback" not in se
