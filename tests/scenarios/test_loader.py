@@ -29,7 +29,7 @@ def err(data, overrides=(), *, build_it=True):
 def test_paper_scenario_loads():
     sc, frozen = load(LKS)
     assert sc.estimator.kappa == 0.5 and sc.network.graph.kind == "ring"
-    assert sc.run.n_rounds == 40000
+    assert sc.run.n_rounds == 4000
 
 
 def test_missing_file(tmp_path):
