@@ -1,0 +1,56 @@
+"""``rse sweep``: grid syntax, parallel runs, the table, resuming."""
+
+import json
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from agents.sweep import parse_grid, points, run_sweep
+from estimation.errors import ScenarioError
+
+SC = Path(__file__).resolve().parents[2] / "scenarios" / "mitra_cells.toml"
+
+
+def test_grid_syntax():
+    key, vals = parse_grid("network.channel.drop_p=0:0.9:0.05")
+    assert key == "network.channel.drop_p" and len(vals) == 19 and vals[0] == 0 and vals[-1] == pytest.approx(0.9)
+    assert parse_grid("estimator.rule=lfre,median")[1] == ["lfre", "median"]
+    assert parse_grid("plant.params.K=2:8:2")[1] == [2, 4, 6, 8]
+    for bad in ("nokey", "a=1:0:1", "a=x:y:z", "=3"):
+        with pytest.raises(ScenarioError):
+            parse_grid(bad)
+    pts = points([("a", [1, 2]), ("b", ["x", "y", "z"])], [0, 1])
+    assert len(pts) == 12 and len({p.id for p in pts}) == 12
+
+
+def test_sweep_runs_in_parallel_writes_the_table_and_resumes(tmp_path):
+    out = tmp_path / "sweep"
+    calls = []
+    rows = run_sweep(SC, ["network.channel.drop_p=0.0,0.8"], seeds=2, jobs=2, out=out,
+                     overrides=["run.rounds=60", "expect=[]"], progress=lambda d, t: calls.append((d, t)))
+    assert len(rows) == 4 and all(r["status"] == "ok" for r in rows)
+    table = pq.read_table(out / "sweep.parquet").to_pydict()
+    assert sorted(table["network.channel.drop_p"]) == [0.0, 0.0, 0.8, 0.8]
+    assert sorted(table["seed"]) == [3, 3, 4, 4]
+    by_p = {}
+    for p, e in zip(table["network.channel.drop_p"], table["worst_final_error_2"]):
+        by_p.setdefault(p, []).append(e)
+    assert max(by_p[0.0]) < min(by_p[0.8])  # dropping 80% of the messages hurts
+    assert calls[0] == (0, 4) and calls[-1] == (4, 4)
+    # resume: everything is done already, nothing runs again
+    stamps = {p: p.stat().st_mtime_ns for p in out.glob("points/*/point.json")}
+    calls.clear()
+    rows2 = run_sweep(SC, ["network.channel.drop_p=0.0,0.8"], seeds=2, jobs=2, out=out,
+                      overrides=["run.rounds=60", "expect=[]"], progress=lambda d, t: calls.append((d, t)))
+    assert calls == [(4, 4)] and len(rows2) == 4
+    assert stamps == {p: p.stat().st_mtime_ns for p in out.glob("points/*/point.json")}
+    # a different sweep in the same directory is refused
+    with pytest.raises(ScenarioError, match="holds a different sweep"):
+        run_sweep(SC, ["network.channel.drop_p=0.1"], seeds=2, jobs=1, out=out, overrides=["run.rounds=60", "expect=[]"])
+
+
+def test_bad_grid_values_fail_before_any_run(tmp_path):
+    with pytest.raises(ScenarioError, match="drop_p"):
+        run_sweep(SC, ["network.channel.drop_p=0.5,1.5"], seeds=1, jobs=1, out=tmp_path / "s", overrides=["expect=[]"])
+    assert not (tmp_path / "s").exists()
