@@ -139,6 +139,13 @@ class InMemoryHub:
         self.watchers: list[tuple[str, "asyncio.Queue[Any]", "InMemoryBus"]] = []
         self.tokens: dict[str, int] = {}
         self.published = 0
+        self._routes: dict[str, list] = {}  # key -> matching subscriptions (cleared when they change)
+
+    def routes(self, key: str) -> list:
+        r = self._routes.get(key)
+        if r is None:
+            r = self._routes[key] = [(q, owner) for pattern, q, owner in self.subs if key_matches(pattern, key)]
+        return r
 
     def bus(self) -> "InMemoryBus":
         return InMemoryBus(self)
@@ -175,12 +182,12 @@ class InMemoryBus(Bus):
             return
         self.hub.published += 1
         data = bytes(payload)
-        for pattern, queue, owner in list(self.hub.subs):
-            if key_matches(pattern, key):
-                self.hub._post(queue, (key, data), owner.stats)
+        for queue, owner in self.hub.routes(key):
+            self.hub._post(queue, (key, data), owner.stats)
 
     def subscribe(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:
         self.hub.subs.append((pattern, queue, self))
+        self.hub._routes.clear()
 
     def watch(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:
         self.hub.watchers.append((pattern, queue, self))
@@ -199,6 +206,7 @@ class InMemoryBus(Bus):
             return
         self._closed = True
         self.hub.subs = [s for s in self.hub.subs if s[2] is not self]
+        self.hub._routes.clear()
         self.hub.watchers = [w for w in self.hub.watchers if w[2] is not self]
         for key in self._tokens:
             self.hub.tokens[key] -= 1

@@ -412,6 +412,125 @@ class PlantProcess(Role):
         return {"elapsed": elapsed, "rounds": K + 1}
 
 
+# ------------------------------------------------------------------- adversary view
+
+
+def reads_view(strategy: Any) -> bool:
+    """Whether a Byzantine strategy reads ``node.view`` (the omniscient adversary)."""
+    return getattr(strategy, "kind", None) == "cancellation"
+
+
+def simulator_order(exp: Experiment) -> dict[int, int]:
+    """Agent id -> rank in the simulator's round order (regular agents first, by index,
+    then the Byzantine ones, by index)."""
+    order = [i for i in range(exp.N) if i not in exp.byzantine] + sorted(exp.byzantine)
+    return {exp.agent_ids[i]: r for r, i in enumerate(order)}
+
+
+class NetworkView:
+    """The omniscient adversary's view over the network: what each out-neighbour ``j``
+    of Byzantine agent ``me`` will use next round, exactly as
+    :class:`agents.simulate.SimulatorView` reads it off ``j``'s node.
+
+    The agent process feeds it every estimate message of the run (:meth:`add`, broadcast
+    and addressed, decoded strictly) and the done reports of the agents it depends on
+    (:meth:`add_done`). For round ``k``, :meth:`others_for` returns the values stamped
+    ``k`` that ``j``'s other in-neighbours sent to ``j`` and that the channel model makes
+    visible to ``j`` at ``k + 1`` -- only from agents that act before ``me`` in the
+    simulator's order (regular agents, then Byzantine ones by index) -- masked by ``j``'s
+    estimator's ``uses(sender_index)`` when it has one, in the simulator's order (so the
+    sums are bit-identical). In lockstep the agent publishes round ``k`` only once
+    :meth:`ready` (every such agent's round-``k`` messages to ``me``'s out-neighbours have
+    arrived, or it is not alive) or the deadline passed.
+    """
+
+    MAX_STORED = 1 << 14
+
+    def __init__(self, exp: Experiment, me: int, channel: Any, uses: dict[int, Any] | None = None) -> None:
+        self.k = 0
+        self.me = me
+        self.channel = channel
+        rank = simulator_order(exp)
+        ids = exp.agent_ids
+        self.index_of = {aid: i for i, aid in enumerate(ids)}
+        i_me = self.index_of[me]
+        self.out = [ids[j] for j in exp.out_neighbours(i_me)]
+        self.out_set = set(self.out)
+        #: receiver -> its in-neighbours that act before me, in the simulator's order
+        self.before: dict[int, list[int]] = {}
+        for j in self.out:
+            ins = [ids[s] for s in exp.in_neighbours(self.index_of[j])]
+            self.before[j] = sorted((s for s in ins if s != me and rank[s] < rank[me]), key=rank.__getitem__)
+        #: the agents whose round-k messages the view needs
+        self.needed = sorted({s for v in self.before.values() for s in v})
+        if uses is None:
+            uses = {j: getattr(exp.make_estimator(self.index_of[j]), "uses", None) for j in self.out}
+        self.uses = uses
+        self.bcast: dict[tuple[int, int], np.ndarray] = {}
+        self.addr: dict[tuple[int, int, int], np.ndarray] = {}
+        self.done: dict[int, dict[int, list[tuple[int, int]]]] = {}
+
+    def wants(self, sender: int, receiver: int | None) -> bool:
+        """Whether an estimate on ``agent/{sender}/est[/{receiver}]`` feeds the view."""
+        if sender not in self.index_of or sender == self.me:
+            return False
+        return receiver is None or receiver in self.out_set
+
+    def add(self, sender: int, receiver: int | None, stamp: int, value: np.ndarray) -> None:
+        if stamp < self.k - 1 or len(self.bcast) + len(self.addr) >= self.MAX_STORED:
+            return
+        if receiver is None:
+            self.bcast[(sender, stamp)] = value
+        else:
+            self.addr[(sender, receiver, stamp)] = value
+
+    def add_done(self, sender: int, stamp: int, to: list[tuple[int, int]]) -> None:
+        if stamp < self.k or stamp > self.k + 64:
+            return
+        self.done.setdefault(stamp, {})[sender] = [(j, s) for j, s in to if j in self.out_set]
+
+    def ready(self, k: int, alive: Callable[[int], bool]) -> bool:
+        """Every agent the view needs reported round ``k`` and its round-``k`` messages to
+        my out-neighbours arrived (agents that are not alive are not waited for)."""
+        done = self.done.get(k, {})
+        for s in self.needed:
+            d = done.get(s)
+            if d is None:
+                if alive(s):
+                    return False
+                continue
+            for j, st in d:
+                if (s, j, st) not in self.addr and (s, st) not in self.bcast:
+                    return False
+        return True
+
+    def others_for(self, receiver: int, sender: int) -> list[np.ndarray]:
+        k = self.k
+        uses = self.uses.get(receiver)
+        fate = self.channel.fate
+        out = []
+        for s in self.before.get(receiver, ()):
+            if s == sender:
+                continue
+            v = self.addr.get((s, receiver, k))
+            if v is None:
+                v = self.bcast.get((s, k))
+            if v is None or fate(s, receiver, k) != k + 1:
+                continue
+            v = np.asarray(v, dtype=float)
+            out.append(v * uses(self.index_of[s]) if uses is not None else v)
+        return out
+
+    def forget(self, k: int) -> None:
+        """Drop what rounds before ``k`` left behind."""
+        self.k = k
+        for store in (self.bcast, self.addr):
+            for key in [key for key in store if key[-1] < k]:
+                del store[key]
+        for s in [s for s in self.done if s < k]:
+            del self.done[s]
+
+
 # ------------------------------------------------------------------------------- agent
 
 
@@ -455,6 +574,13 @@ class AgentProcess(Role):
         self._loc_key = keys.plant_loc(agent_id)
         self._last_ready = 0.0
         self.silent_until = 0
+        #: an omniscient Byzantine strategy's view of its receivers (see NetworkView)
+        self.view: NetworkView | None = None
+        self._held: tuple[int, np.ndarray, float] | None = None  # lockstep: a round waiting for the view
+        if node.strategy is not None and reads_view(node.strategy):
+            self.view = NetworkView(exp, agent_id, node.channel)
+            node.view = self.view
+            self._done_schema = self.wire.done
 
     def _payload_shape(self) -> tuple[int, ...]:
         """The shape of an estimate message: a dry run of a copy of this agent's estimator
@@ -511,6 +637,9 @@ class AgentProcess(Role):
                 return
             self.meas[m.stamp] = (None if m.meta.get("nomeas") else y, wait, now)
             return
+        if self.view is not None:
+            self._handle_view(key, payload)
+            return
         got = self.decode(key, payload, self.est_schema)
         if got is None:
             return
@@ -522,6 +651,66 @@ class AgentProcess(Role):
         self.node.receive(j, m.stamp, m.arrays["x"])
         if m.stamp >= self.last - 2 and len(self.arrived) < 4096:
             self.arrived.setdefault(m.stamp, set()).add(j)
+
+    def _handle_view(self, key: str, payload: bytes) -> None:
+        """A Byzantine agent with a view hears every estimate of the run and the done
+        reports of the agents it depends on: its own inbox, and the view's store."""
+        try:
+            p = self.keys.parse(key)
+        except MessageError:
+            self.rejects.add(None, "key")
+            return
+        if p.kind == "ctl":
+            try:
+                m = decode(payload, schema=self._done_schema, expected_sender=p.sender)
+            except MessageError as exc:
+                self.rejects.add(p.sender, exc.reason)
+                return
+            to, stamps = m.arrays["to"], m.arrays["stamps"]
+            if (p.sender not in self.view.index_of or stamps.size != to.size or to.size > self.exp.N
+                    or not all(float(v).is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
+                self.rejects.add(p.sender, "range")
+                return
+            self.view.add_done(p.sender, m.stamp, [(int(t), int(st)) for t, st in zip(to, stamps)])
+            return
+        j, receiver = p.sender, p.receiver
+        mine = receiver == self.id or (receiver is None and j in self.node.links)
+        if not mine and not (self.view.wants(j, receiver)):
+            return
+        try:
+            m = decode(payload, schema=self.est_schema, expected_sender=j, expected_receiver=receiver)
+        except MessageError as exc:
+            self.rejects.add(j, exc.reason)
+            if mine:
+                self.node.reject(j)
+            return
+        if self.view.wants(j, receiver):
+            self.view.add(j, receiver, m.stamp, m.arrays["x"])
+        if not mine:
+            return
+        if j not in self.node.links:
+            self.rejects.add(j, "neighbour")
+            return
+        self.node.receive(j, m.stamp, m.arrays["x"])
+        if m.stamp >= self.last - 2 and len(self.arrived) < 4096:
+            self.arrived.setdefault(m.stamp, set()).add(j)
+
+    def _release_held(self, now: float) -> bool:
+        """Lockstep, phase two of round k for an omniscient adversary: publish once the
+        view is complete (or the deadline passed). Returns whether it was published."""
+        k, out, t0 = self._held
+        view = self.view
+        if not view.ready(k, lambda s: ("agent", s) in self.alive):
+            if now < t0 + self.cfg.deadline:
+                self._tick_at(t0 + self.cfg.deadline)
+                return False
+            self.waited_out += 1
+            if self.waited_out in (1, 10, 100, 1000):
+                log.warning("agent %d: round %d published without a complete view (%d time(s))", self.id, k,
+                            self.waited_out)
+        self._held = None
+        self._publish_round(k, out)
+        return True
 
     def _arrived_all(self, wait: np.ndarray) -> bool:
         arrived = self.arrived
@@ -535,6 +724,8 @@ class AgentProcess(Role):
 
     def _publish_round(self, k: int, out: np.ndarray) -> None:
         node, bus = self.node, self.bus
+        if self.view is not None:
+            self.view.forget(k)
         own = self._own_estimate(out) if self._own_estimate is not None else out
         msg = node.publish(k, out) if node.strategy is not None else out
         aid = self.id
@@ -567,6 +758,8 @@ class AgentProcess(Role):
         """Run every round that can run now."""
         lockstep = self.cfg.mode == "lockstep"
         now = time.monotonic()
+        if self._held is not None and not self._release_held(now):
+            return
         while self.meas:
             if lockstep:
                 k = min(self.meas)
@@ -586,11 +779,16 @@ class AgentProcess(Role):
                 self.skipped += len(self.meas) - 1
                 self.meas.clear()
             out = self.node.run_round(k, y)
-            self._publish_round(k, out)
             self.last = k
             self.rounds_run += 1
             for s in [s for s in self.arrived if s < k - 2]:
                 del self.arrived[s]
+            if self.view is not None and lockstep and k >= self.silent_until:
+                self._held = (k, out, now)
+                if not self._release_held(now):
+                    return
+            else:
+                self._publish_round(k, out)
         if self.stop is not None and not self.meas:
             K, wait, t_arr = self.stop
             if lockstep and self.member and not self._arrived_all(wait) and now < t_arr + self.cfg.deadline:
@@ -615,9 +813,15 @@ class AgentProcess(Role):
     async def run(self) -> dict[str, Any]:
         exp, keys, bus, cfg = self.exp, self.keys, self.bus, self.cfg
         bus.subscribe(self._loc_key, self.queue)
-        for j in self.in_ids:
-            bus.subscribe(keys.est(j), self.queue)
-        bus.subscribe(keys.est_pattern(to=self.id), self.queue)
+        if self.view is None:
+            for j in self.in_ids:
+                bus.subscribe(keys.est(j), self.queue)
+            bus.subscribe(keys.est_pattern(to=self.id), self.queue)
+        else:  # every estimate of the run, broadcast and addressed, and the reports it waits for
+            bus.subscribe(keys.est_pattern(), self.queue)
+            bus.subscribe(f"{keys.est_pattern()}/*", self.queue)
+            for s in self.view.needed:
+                bus.subscribe(keys.ctl("done", s), self.queue)
         bus.watch(keys.alive_pattern(), self.queue)
         bus.announce(keys.alive("agent", self.id))
         consumer = asyncio.ensure_future(self.consume())
