@@ -186,7 +186,17 @@ def run_role(spec: ChildSpec) -> int:
 
             exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
         log.debug("scenario built")
-        asyncio.run(_role_main(spec, exp))
+        prof_dir = os.environ.get("RSE_PROFILE")  # a directory: one cProfile dump per process
+        if prof_dir:
+            import cProfile
+
+            prof = cProfile.Profile(time.thread_time)  # CPU of this thread, not waits
+            try:
+                prof.runcall(asyncio.run, _role_main(spec, exp))
+            finally:
+                prof.dump_stats(os.path.join(prof_dir, spec.label.replace(" ", "-") + ".prof"))
+        else:
+            asyncio.run(_role_main(spec, exp))
         return EXIT_OK
     except ScenarioError as exc:
         error(f"{spec.label}: {exc}")

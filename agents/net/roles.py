@@ -188,6 +188,7 @@ class Role:
         self.alive: set[tuple[str, int]] = set()
         self.changed = asyncio.Event()
         self.ids = set(exp.agent_ids)
+        self._waiting: Callable[[], bool] | None = None  # the predicate wait_for waits on
 
     def decode(self, key: str, payload: bytes, schema: Schema) -> tuple[ParsedKey, Message] | None:
         try:
@@ -242,23 +243,40 @@ class Role:
             self.handle(await q.get())
             while not q.empty():
                 self.handle(q.get_nowait())
-            self.changed.set()
+            if self.after_batch():
+                self.changed.set()
+
+    def after_batch(self) -> bool:
+        """Called by the consumer after each batch of messages; returns whether the role's
+        main loop must wake up (a role may do its work here and spare that wake-up). While
+        :meth:`wait_for` waits, only when its predicate holds."""
+        pred = self._waiting
+        if pred is None:
+            return True
+        try:
+            return bool(pred())
+        except Exception:  # let the waiter see it
+            return True
 
     async def wait_for(self, pred: Callable[[], bool], timeout: float | None) -> bool:
         """Wait until ``pred()`` holds (re-checked after each batch of messages)."""
         end = None if timeout is None else time.monotonic() + timeout
-        while not pred():
-            self.changed.clear()
-            if pred():
-                return True
-            remaining = None if end is None else end - time.monotonic()
-            if remaining is not None and remaining <= 0:
-                return False
-            try:
-                await asyncio.wait_for(self.changed.wait(), remaining)
-            except asyncio.TimeoutError:
-                return pred()
-        return True
+        self._waiting = pred
+        try:
+            while not pred():
+                self.changed.clear()
+                if pred():
+                    return True
+                remaining = None if end is None else end - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return False
+                try:
+                    await asyncio.wait_for(self.changed.wait(), remaining)
+                except asyncio.TimeoutError:
+                    return pred()
+            return True
+        finally:
+            self._waiting = None
 
     def send_stats(self, sender: int, links: np.ndarray | None = None, **meta: Any) -> None:
         links = np.zeros((0, 6)) if links is None else links
@@ -577,6 +595,7 @@ class AgentProcess(Role):
         #: an omniscient Byzantine strategy's view of its receivers (see NetworkView)
         self.view: NetworkView | None = None
         self._held: tuple[int, np.ndarray, float] | None = None  # lockstep: a round waiting for the view
+        self._error: Exception | None = None  # raised in the consumer's _step
         if node.strategy is not None and reads_view(node.strategy):
             self.view = NetworkView(exp, agent_id, node.channel)
             node.view = self.view
@@ -796,6 +815,17 @@ class AgentProcess(Role):
                 return
             self.finished.set()
 
+    def after_batch(self) -> bool:
+        # a member runs its rounds right here (the main loop wakes only when it must)
+        if not self.member or self._error is not None or ("plant", 0) not in self.alive:
+            return True
+        try:
+            self._step()
+        except Exception as exc:  # re-raised by the main loop
+            self._error = exc
+            return True
+        return self.finished.is_set() or not self.member
+
     def _maybe_ready(self) -> None:
         if self.member or self.plant_seen_at is None or ("monitor", 0) not in self.alive:
             return
@@ -817,9 +847,11 @@ class AgentProcess(Role):
             for j in self.in_ids:
                 bus.subscribe(keys.est(j), self.queue)
             bus.subscribe(keys.est_pattern(to=self.id), self.queue)
-        else:  # every estimate of the run, broadcast and addressed, and the reports it waits for
-            bus.subscribe(keys.est_pattern(), self.queue)
-            bus.subscribe(f"{keys.est_pattern()}/*", self.queue)
+        else:  # also the estimates its receivers will use, and the reports it waits for
+            for j in sorted(set(self.in_ids) | set(self.view.needed)):
+                bus.subscribe(keys.est(j), self.queue)
+            for j in sorted({self.id} | self.view.out_set):
+                bus.subscribe(keys.est_pattern(to=j), self.queue)
             for s in self.view.needed:
                 bus.subscribe(keys.ctl("done", s), self.queue)
         bus.watch(keys.alive_pattern(), self.queue)
@@ -829,6 +861,8 @@ class AgentProcess(Role):
         try:
             while not self.finished.is_set():
                 self.changed.clear()
+                if self._error is not None:
+                    raise self._error
                 self._step()
                 if self.finished.is_set():
                     break
@@ -902,6 +936,12 @@ class MonitorProcess(Role):
         self.traj = np.full((K, exp.N, exp.n), np.nan) if cfg.save_estimates else None
         self.truth = np.full((K, exp.n), np.nan) if cfg.save_estimates else None
         self._last_progress = 0.0
+
+    def after_batch(self) -> bool:
+        # rounds are recorded by handle_data; the main loop only watches for the end
+        if self._waiting is not None:
+            return super().after_batch()
+        return self.stop_round is not None or self.next_k == 0 or ("plant", 0) not in self.alive
 
     def on_alive(self, role: str, i: int, alive: bool) -> None:
         event = {"t_wall": round(time.monotonic() - self.t0, 3), "round": self.next_k, "role": role, "id": i,
