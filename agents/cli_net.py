@@ -16,7 +16,8 @@ import click
 
 from estimation.errors import ExpectationFailed, RSEError, ScenarioError
 
-from .cli import EXIT_INTERRUPTED, _handle_errors, bench, cli, load_experiment, scenario_options
+from .cli import (EXIT_INTERRUPTED, _handle_errors, bench, cli, dashboard_options, load_experiment, rerun_options,
+                  scenario_options, wait_while_serving)
 
 
 def _run_options(fn: Callable) -> Callable:
@@ -88,16 +89,20 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
 @click.option("--run-id", default=None, help="Run id in every key expression (default: NAME-RANDOM).")
 @click.option("--save-estimates", is_flag=True, help="Also write estimates.npy and truth.npy (every agent's estimate per round).")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
+@rerun_options
 @_handle_errors
 def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, mode: str, rate: float | None,
         deadline: float, startup_timeout: float, warmup: float, connect: tuple[str, ...], run_id: str | None,
-        save_estimates: bool, progress: bool) -> None:
+        save_estimates: bool, progress: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
+        web_port: int | None, grpc_port: int | None) -> None:
     """Run SCENARIO as a team of processes over Zenoh: plant, monitor, one process per agent.
 
     Writes the same run directory as `rse simulate` (manifest.json, design.json,
-    metrics.parquet, summary.json) plus team.json (run id, endpoints: restart a killed agent
-    with `rse agent --id I --team RUN_DIR/team.json`). In lockstep mode the estimates equal
-    `rse simulate`'s.
+    metrics.parquet, summary.json, the Rerun recording recording.rrd streamed by the monitor)
+    plus team.json (run id, endpoints: restart a killed agent with
+    `rse agent --id I --team RUN_DIR/team.json`). In lockstep mode the estimates equal
+    `rse simulate`'s. With --serve-web the monitor keeps serving the recording after the
+    run until Ctrl-C.
     """
     from transport.keys import validate_run_id
 
@@ -113,17 +118,44 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
             raise ScenarioError(f"--run-id: {exc}") from None
     exp, frozen = load_experiment(scenario, overrides, seed)
     run_dir = out or default_run_dir(exp.scenario.run.name)
-    res = launch(scenario, overrides, seed, run_dir, cfg, connect=eps, progress=progress, run_id=run_id, exp=exp, frozen=frozen)
+    dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
     from .console import out as console
 
+    def title(summary: dict[str, Any]) -> str:
+        return (f"{exp.scenario.run.name} (rse run, {mode}): {summary['rounds'] + 1} rounds, "
+                f"window t in [{exp.window[0]:g}, {exp.window[1]:g}]")
+
+    served: dict[str, Any] = {}
+
+    def show_urls(urls: dict[str, str]) -> None:
+        for what, url in urls.items():
+            console.print(f"rerun {what}: {url}", soft_wrap=True)
+        served["urls"] = urls
+
+    def while_serving(summary: dict[str, Any] | None) -> None:
+        # the run is over, the monitor still serves the recording: report now, then wait
+        if summary is not None:
+            try:
+                _print_outcome(summary, title(summary))
+            except ExpectationFailed as exc:
+                served["failed"] = exc
+            served["printed"] = True
+        console.print(f"run directory: {run_dir}")
+        wait_while_serving(served.get("urls", {}).get("web", ""))
+
+    res = launch(scenario, overrides, seed, run_dir, cfg, connect=eps, progress=progress, run_id=run_id, exp=exp,
+                 frozen=frozen, dashboard=dopts, show_urls=show_urls, while_serving=while_serving)
     if res.status == EXIT_INTERRUPTED:
         raise KeyboardInterrupt
     if res.status != 0:
         raise RSEError("; ".join(res.failures) or "the run failed")
     for leave in res.leaves:
         console.print(f"left during the run: {leave}")
-    _print_outcome(res.summary, f"{exp.scenario.run.name} (rse run, {mode}): {res.summary['rounds'] + 1} rounds, "
-                                f"window t in [{exp.window[0]:g}, {exp.window[1]:g}]")
+    if served.get("printed"):
+        if "failed" in served:
+            raise served["failed"]
+        return
+    _print_outcome(res.summary, title(res.summary))
     console.print(f"run directory: {run_dir}")
 
 

@@ -68,6 +68,7 @@ class ChildSpec:
     watch_parent: bool = False
     experiment: bytes | None = None  # the launcher's built experiment, pickled (no rebuild)
     node: bytes | None = None  # an agent's built AgentNode, pickled (no design in the child)
+    dashboard: Any = None  # the monitor's agents.dashboard.DashboardOptions (None: no Rerun output)
 
     @property
     def label(self) -> str:
@@ -154,7 +155,24 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
                     pass
 
         out = Path(spec.out_dir) if spec.out_dir else None
-        return await roles.run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress)
+        dash = None
+        try:
+            if spec.dashboard is not None:
+                from agents.dashboard import Dashboard
+
+                # one recording per run: its id is the run id
+                dash = Dashboard(exp, run_id=spec.run_id, options=spec.dashboard)
+                progress("urls", dict(spec.dashboard.urls))
+            res = await roles.run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress, dashboard=dash)
+            if dash is not None and spec.dashboard.serve_web:
+                # the run is over: keep serving the recording until SIGINT / SIGTERM
+                bus.close()
+                progress("serving", dict(spec.dashboard.urls))
+                await asyncio.Event().wait()
+            return res
+        finally:
+            if dash is not None:
+                dash.close()
     finally:
         if watcher is not None:
             watcher.cancel()
@@ -320,8 +338,17 @@ def launch(
     exp: Any = None,
     frozen: dict | None = None,
     say: Any = None,
+    dashboard: Any = None,
+    show_urls: Any = None,
+    while_serving: Any = None,
 ) -> LaunchResult:
-    """Start and supervise the team; returns when every child has exited."""
+    """Start and supervise the team; returns when every child has exited.
+
+    dashboard : the monitor's :class:`agents.dashboard.DashboardOptions` (None: no Rerun output)
+    show_urls : called with the dashboard's URLs once the monitor serves them
+    while_serving : with ``dashboard.serve_web``, called with the summary once the run is
+        over while the monitor still serves the recording; the monitor stops when it returns
+    """
     from agents.console import err, round_progress
     from agents.rundir import write_design, write_json, write_manifest
     from transport.zenoh_session import SessionOptions, tcp_endpoint
@@ -358,7 +385,8 @@ def launch(
         os.environ.setdefault(var, "1")  # tiny matrices: one BLAS thread per process (inherited by the children)
     specs = {
         "plant": ChildSpec(role="plant", session=sessions["plant"], **base),
-        "monitor": ChildSpec(role="monitor", session=sessions["monitor"], out_dir=str(run_dir), conn=send_conn, **base),
+        "monitor": ChildSpec(role="monitor", session=sessions["monitor"], out_dir=str(run_dir), conn=send_conn,
+                             dashboard=dashboard, **base),
     }
     from agents.simulate import make_channel, make_nodes
 
@@ -376,6 +404,7 @@ def launch(
     noted: set[str] = set()
     stopping: list[int] = []
     prev_handlers: dict[int, Any] = {}
+    serving = False
 
     def on_signal(signum: int, frame: Any) -> None:
         stopping.append(signum)
@@ -415,6 +444,12 @@ def launch(
                     if kind == "round":
                         k_now, worst = data
                         update(k_now, worst)
+                    elif kind == "urls" and show_urls is not None:
+                        show_urls(data)
+                    elif kind == "serving":
+                        serving = True
+                        noted.add("monitor")
+                        monitor_done_at = monitor_done_at or time.monotonic()
                     elif kind == "member" and data["role"] == "agent" and data["round"] > 0:
                         say(f"agent {data['id']} {'joined' if data['event'] == 'join' else 'left'} (round {data['round']})")
                     try:
@@ -445,10 +480,15 @@ def launch(
                         fatal = True
                 if fatal:
                     break
-                if all(p.exitcode is not None for p in procs.values()):
+                if all(p.exitcode is not None for nm, p in procs.items() if not (serving and nm == "monitor")):
+                    if serving and while_serving is not None and not failures:
+                        summary = None
+                        with contextlib.suppress(OSError, ValueError):
+                            summary = json.loads((run_dir / "summary.json").read_text())
+                        while_serving(summary)
                     break
                 if monitor_done_at is not None and now - monitor_done_at > END_GRACE_S:
-                    late = [nm for nm, p in procs.items() if p.exitcode is None]
+                    late = [nm for nm, p in procs.items() if p.exitcode is None and not (serving and nm == "monitor")]
                     failures.append(f"{', '.join(late)} did not stop after the end of the run")
                     break
     finally:

@@ -917,11 +917,15 @@ class MonitorProcess(Role):
     name = "monitor"
 
     def __init__(self, exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig, *, out_dir: Path | None = None,
-                 progress: Callable[[str, Any], None] | None = None) -> None:
+                 progress: Callable[[str, Any], None] | None = None, dashboard: Any = None) -> None:
         super().__init__(exp, bus, keys, cfg)
         from agents.monitor import Monitor
 
         self.mon = Monitor(exp)
+        self.dashboard = dashboard
+        self._last_flush = time.monotonic()
+        if dashboard is not None:
+            self._setup_dashboard(dashboard)
         self.out_dir = out_dir
         self.progress = progress or (lambda kind, data: None)
         self.rounds: dict[int, _Round] = {}
@@ -942,6 +946,53 @@ class MonitorProcess(Role):
         if self._waiting is not None:
             return super().after_batch()
         return self.stop_round is not None or self.next_k == 0 or ("plant", 0) not in self.alive
+
+    def _setup_dashboard(self, dash: Any) -> None:
+        """Stream to the Rerun dashboard as ``rse simulate`` does: per chunk of recorded
+        rounds the metrics, state plots, map frames and counters. The links delivered in a
+        round and the link counters are reconstructed from the done reports (who sent what
+        to whom, stamped when) with the channel model, as each receiver's node decides."""
+        from agents.simulate import make_channel
+
+        exp, mon = self.exp, self.mon
+        self._channel = make_channel(exp)
+        self._frames: dict[int, np.ndarray] = {}
+        self._counters = np.zeros((exp.N, 4))  # delivered, dropped, late, rejected (per receiver)
+        N = exp.N
+
+        def on_chunk(rows: Any, xs: np.ndarray, ests: np.ndarray) -> None:
+            frames = {int(k): self._frames.pop(int(k), None) for k in rows if dash.is_map_frame(int(k))}
+            for k, D in frames.items():
+                if D is None:
+                    frames[k] = np.zeros((N, N), dtype=bool)
+            try:
+                dash.log_chunk(rows, mon, x=xs, est=ests, delivered=frames, counters=self._counters.copy())
+            except Exception:  # the dashboard must not stop the monitor
+                log.exception("monitor: could not log to the dashboard")
+
+        mon.on_chunk = on_chunk
+
+    def _links_of(self, sender: int, stamp: int, to: np.ndarray, stamps: np.ndarray) -> None:
+        """Dashboard bookkeeping of one done report (see :meth:`_setup_dashboard`)."""
+        fate, index, dash = self._channel.fate, self.index, self.dashboard
+        s = index[sender]
+        for t, st in zip(to, stamps):
+            r = index.get(int(t))
+            if r is None:
+                continue
+            when = fate(sender, int(t), int(st))
+            c = self._counters[r]
+            if when is None:
+                c[1] += 1
+                continue
+            c[0] += 1
+            if when > int(st) + 1:
+                c[2] += 1
+            if when >= self.next_k and dash.is_map_frame(when) and when <= self.exp.n_rounds:
+                D = self._frames.get(when)
+                if D is None:
+                    D = self._frames[when] = np.zeros((self.exp.N, self.exp.N), dtype=bool)
+                D[r, s] = True
 
     def on_alive(self, role: str, i: int, alive: bool) -> None:
         event = {"t_wall": round(time.monotonic() - self.t0, 3), "round": self.next_k, "role": role, "id": i,
@@ -986,6 +1037,8 @@ class MonitorProcess(Role):
             if not m.meta.get("nonfinite"):
                 r.est[i] = m.arrays["x"]
             r.present[i] = True
+            if self.dashboard is not None:
+                self._links_of(p.sender, k, m.arrays["to"], m.arrays["stamps"])
         elif "/ctl/stats/" in key:
             got = self.decode(key, payload, self.wire.stats)
             if got is not None:
@@ -1030,6 +1083,9 @@ class MonitorProcess(Role):
                 break
         if closed:
             now = time.monotonic()
+            if self.dashboard is not None and now - self._last_flush > 0.5:
+                self._last_flush = now
+                self.mon.flush()  # keep the live view fresh
             if now - self._last_progress > 0.1 or final:
                 self._last_progress = now
                 self.progress("round", (self.next_k - 1, self.mon.current_worst()))
@@ -1070,7 +1126,13 @@ class MonitorProcess(Role):
         from agents.summary import evaluate, summarise
 
         exp, mon = self.exp, self.mon
+        if self.dashboard is not None:  # the final rejected counts per receiver, for the last chunk
+            for who, m in self.stats.items():
+                if who.isdigit() and int(who) in self.index:
+                    self._counters[self.index[int(who)], 3] = float(np.sum(m.arrays["links"][:, 5]))
         mon.flush()
+        if self.dashboard is not None:
+            self.dashboard.flush()
         regular = np.array([i not in exp.byzantine for i in range(exp.N)])
         links: dict[str, dict[str, int]] = {}
         rejected: dict[str, dict[str, int]] = {}
@@ -1130,9 +1192,10 @@ async def run_agent(exp: Experiment, agent_id: int, bus: Bus, keys: Keys, cfg: R
 
 
 async def run_monitor(exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig, *, out_dir: Path | None = None,
-                      progress: Callable[[str, Any], None] | None = None) -> MonitorResult:
-    """The monitor until the plant stops the team; writes metrics and summary to ``out_dir``."""
-    return await MonitorProcess(exp, bus, keys, cfg, out_dir=out_dir, progress=progress).run()
+                      progress: Callable[[str, Any], None] | None = None, dashboard: Any = None) -> MonitorResult:
+    """The monitor until the plant stops the team; writes metrics and summary to ``out_dir``;
+    streams to ``dashboard`` (an :class:`agents.dashboard.Dashboard`) when given."""
+    return await MonitorProcess(exp, bus, keys, cfg, out_dir=out_dir, progress=progress, dashboard=dashboard).run()
 
 
 async def run_team_in_memory(exp: Experiment, cfg: RunConfig, *, run_id: str = "mem", out_dir: Path | None = None,
