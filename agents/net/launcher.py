@@ -66,8 +66,10 @@ class ChildSpec:
     conn: Any = None  # the monitor's progress pipe to the launcher
     log_level: int = logging.WARNING
     watch_parent: bool = False
-    experiment: bytes | None = None  # the launcher's built experiment, pickled (no rebuild)
-    node: bytes | None = None  # an agent's built AgentNode, pickled (no design in the child)
+    # the launcher's built experiment, pickled (no rebuild), or the path of that pickle: a
+    # path keeps the spec small, so that starting a child does not wait for it to read it
+    experiment: bytes | str | None = None
+    node: bytes | str | None = None  # an agent's built AgentNode, pickled (no design in the child), or its path
     dashboard: Any = None  # the monitor's agents.dashboard.DashboardOptions (None: no Rerun output)
 
     @property
@@ -143,7 +145,7 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
             if spec.node is not None:
                 import pickle
 
-                node = pickle.loads(spec.node)
+                node = pickle.loads(_blob(spec.node))
             return await roles.run_agent(exp, spec.agent_id, bus, keys, spec.cfg, node=node)
         conn = spec.conn
 
@@ -181,6 +183,10 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
         close_session(session)
 
 
+def _blob(b: bytes | str) -> bytes:
+    return Path(b).read_bytes() if isinstance(b, str) else b
+
+
 def run_role(spec: ChildSpec) -> int:
     """Run one role in this process until the team stops; returns an exit status.
 
@@ -198,7 +204,7 @@ def run_role(spec: ChildSpec) -> int:
         if spec.experiment is not None:
             import pickle
 
-            exp = pickle.loads(spec.experiment)
+            exp = pickle.loads(_blob(spec.experiment))
         else:
             from agents.cli import load_experiment
 
@@ -381,6 +387,10 @@ def launch(
 
     base = dict(scenario=str(scenario), overrides=tuple(overrides), seed=seed, run_id=run_id, cfg=cfg, watch_parent=True,
                 experiment=pickle.dumps(exp))
+    cache = run_dir / "team"
+    cache.mkdir(exist_ok=True)
+    (cache / "experiment.pkl").write_bytes(base["experiment"])
+    base["experiment"] = str((cache / "experiment.pkl").resolve())
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")  # tiny matrices: one BLAS thread per process (inherited by the children)
     specs = {
@@ -391,13 +401,11 @@ def launch(
     from agents.simulate import make_channel, make_nodes
 
     nodes = make_nodes(exp, make_channel(exp))  # built once, as the simulator does
-    cache = run_dir / "team"
-    cache.mkdir(exist_ok=True)
-    (cache / "experiment.pkl").write_bytes(base["experiment"])
     for a, node in zip(exp.agent_ids, nodes):
-        blob = pickle.dumps(node)
-        (cache / f"agent-{a}.pkl").write_bytes(blob)  # a fresh node, for `rse agent --team` (fast rejoin)
-        specs[f"agent {a}"] = ChildSpec(role="agent", agent_id=a, session=sessions[f"agent {a}"], node=blob, **base)
+        path = cache / f"agent-{a}.pkl"
+        path.write_bytes(pickle.dumps(node))  # a fresh node, also for `rse agent --team` (fast rejoin)
+        specs[f"agent {a}"] = ChildSpec(role="agent", agent_id=a, session=sessions[f"agent {a}"],
+                                        node=str(path.resolve()), **base)
     procs: dict[str, Any] = {}
     failures: list[str] = []
     leaves: list[str] = []

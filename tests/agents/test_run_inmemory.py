@@ -59,6 +59,16 @@ def test_mobile_agents_and_drops_in_memory_equal_the_simulator():
     assert any(c["dropped"] for c in ref.links.values())
 
 
+def test_omniscient_cancellation_adversary_in_memory_equals_the_simulator():
+    """mitra_cells.toml as it is: 300 rounds, drops with p = 0.32, agent 5 cancelling with
+    the omniscient view (NetworkView) in a second phase of each round."""
+    ref, res = _both(SCENARIOS / "mitra_cells.toml", ())
+    assert not np.isnan(res.estimates).any()
+    assert _rel(res.estimates, ref.estimates, ref.truth) <= 1e-12
+    assert res.summary["links"] == ref.links
+    assert res.summary["agents"]["5"]["regular"] is False
+
+
 def test_addressed_payloads_of_a_byzantine_agent():
     def tweak(exp):
         exp.strategies[1] = Strategy(kind="equivocation", start=200, scale=0.3)
