@@ -77,3 +77,39 @@ def test_serve_web_serves_the_viewer_and_stops_on_ctrl_c(tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=10)
+
+
+@pytest.mark.multiprocess
+def test_rse_run_serve_web_streams_from_the_monitor_and_stops_on_ctrl_c(tmp_path):
+    """rse run --serve-web: the monitor process serves the viewer and the recording (the run
+    id is the recording id), keeps serving after the run, and Ctrl-C stops every process."""
+    web, grpc = free_port(), free_port()
+    exe = shutil.which("rse")
+    cmd = [exe] if exe else [sys.executable, "-m", "agents.cli"]
+    cmd += ["run", str(SCENARIOS / "mitra_cells.toml"), "--out", str(tmp_path / "run"), "--no-progress",
+            "--serve-web", "--web-port", str(web), "--grpc-port", str(grpc)]
+    env = dict(os.environ, COLUMNS="200")
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, env=env,
+                            start_new_session=True)
+    try:
+        assert wait_for(lambda: answers(web) and answers(grpc), 50), "viewer ports never opened"
+        with urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10) as r:
+            assert r.status == 200 and "rerun" in r.read().decode("utf-8", "replace").lower()
+        summary = tmp_path / "run" / "summary.json"
+        assert wait_for(summary.exists, 50), "the run did not finish"
+        time.sleep(1.0)
+        assert proc.poll() is None  # still serving after the run
+        assert answers(web) and answers(grpc)
+        assert (tmp_path / "run" / "recording.rrd").stat().st_size > 10_000
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=10)
+        assert time.monotonic() - t0 < 3.0
+        out = proc.stdout.read()
+        assert rc == 0, out
+        assert f"http://127.0.0.1:{web}/?url=" in out.replace("\n", "")
+        assert "still serving" in out and "Traceback" not in out
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
