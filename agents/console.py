@@ -72,6 +72,12 @@ def summary_table(summary: dict, *, block: str = "x", title: str | None = None) 
     if w:
         t.add_row("[bold]worst regular", "", fmt(w.get("final_error_inf")), fmt(w.get("final_relative_error_2")),
                   fmt(w.get("window_max_error_inf")), fmt(w.get("convergence_round")), end_section=True)
+    det = summary.get("detected_attacks")
+    if det is not None:
+        by = det.get("by_agent", {})
+        who = [f"agent {a} (t = {fmt(by[str(a)]['first_t'])} .. {fmt(by[str(a)]['last_t'])})" for a in det.get("agents", [])]
+        t.caption = "attack flags: " + (", ".join(who) if who else "none raised")
+        t.caption_justify = "left"
     return t
 
 

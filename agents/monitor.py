@@ -6,16 +6,61 @@ For each round ``k``, agent ``i`` and state block ``b`` (``"x"`` is the whole st
 * ``relative_error_2 = error_2 / |x[k]_b|_2`` -- the metric for unstable plants, whose
   absolute error in float64 has a floor of about 1e-15 |x|.
 
+A block is either 1-D state indices (``x_b = x[idx]``) or a 2-D matrix ``M`` of shape
+``(r, n)``, a block over transformed coordinates (``x_b = M x``): its metrics are those of
+``M (x_hat - x)`` and ``|M x|``. Plant models provide such blocks (``PlantModel.blocks``)
+for errors in the plant's own units, e.g. the inverter line's squared voltages.
+
 A round in which an agent published nothing (crashed, not yet joined) is NaN.
+
+Estimator diagnostics (optional, any algorithm): an estimator may expose
+``diagnostics() -> dict[str, float]`` (a flat mapping, e.g. an attack indicator) and a
+``flagged`` bool property (it believes it detected an attack). A driver reads them after
+each round with :func:`read_diagnostics` and hands them to
+:meth:`Monitor.record_diagnostics`; they end up in ``diagnostics.parquet`` and in
+``summary.json`` (``diagnostics``, ``detected_attacks``). Estimators without them cost
+nothing.
 """
 
 from __future__ import annotations
+
+from typing import Any, Mapping
 
 import numpy as np
 
 from scenarios.build import Experiment
 
 METRICS = ("error_2", "error_inf", "relative_error_2")
+
+
+def plot_rows(exp: Experiment) -> list[tuple[str, np.ndarray, list[int]]]:
+    """``[[output.plots]]`` as ``(name, row (n,), agent ids)``; default: ``x1`` and agent 1."""
+    out = []
+    for p in exp.scenario.output.plots:
+        row = np.zeros(exp.n)
+        for idx, w in zip(p.states, p.weights or [1.0] * len(p.states)):
+            if not 1 <= idx <= exp.n:
+                continue
+            row[idx - 1] += w
+        out.append((p.name, row, [a for a in (p.agents or [exp.agent_ids[0]]) if a in exp.agent_ids]))
+    if not out:
+        row = np.zeros(exp.n)
+        row[0] = 1.0
+        out.append(("x1", row, [exp.agent_ids[0]]))
+    return out
+
+
+def has_diagnostics(estimator: Any) -> bool:
+    """Whether ``estimator`` exposes ``diagnostics()`` or ``flagged`` (see the module docstring)."""
+    return callable(getattr(estimator, "diagnostics", None)) or hasattr(type(estimator), "flagged")
+
+
+def read_diagnostics(estimator: Any) -> tuple[dict[str, float] | None, bool | None]:
+    """``(diagnostics, flagged)`` of ``estimator`` now; ``None`` for what it does not expose."""
+    fn = getattr(estimator, "diagnostics", None)
+    diag = {str(k): float(v) for k, v in fn().items()} if callable(fn) else None
+    flag = getattr(estimator, "flagged", None) if hasattr(type(estimator), "flagged") else None
+    return diag, (None if flag is None else bool(flag))
 
 
 class Monitor:
@@ -31,8 +76,12 @@ class Monitor:
         self.exp = exp
         K = exp.n_rounds + 1
         self.block_names = list(exp.blocks)
-        self._blocks = [exp.blocks[b] for b in self.block_names]
-        self._whole = [len(idx) == exp.n for idx in self._blocks]
+        self._blocks = [np.asarray(exp.blocks[b]) for b in self.block_names]
+        self._maps = [idx.astype(float) if idx.ndim == 2 else None for idx in self._blocks]
+        for name, M in zip(self.block_names, self._maps):
+            if M is not None and M.shape[1] != exp.n:
+                raise ValueError(f"block {name!r}: a matrix block needs {exp.n} columns, got shape {M.shape}")
+        self._whole = [M is None and len(idx) == exp.n for idx, M in zip(self._blocks, self._maps)]
         shape = (K, exp.N, len(self._blocks))
         self.error_2 = np.full(shape, np.nan)
         self.error_inf = np.full(shape, np.nan)
@@ -43,6 +92,31 @@ class Monitor:
         self._est = np.full((self._chunk, exp.N, exp.n), np.nan)
         self._x = np.zeros((self._chunk, exp.n))
         self._rows: list[int] = []
+        #: called as ``on_chunk(rows, x (c, n), estimates (c, N, n))`` after each flush
+        self.on_chunk = None
+        # [[output.plots]]: linear combinations of the state, truth and chosen agents
+        self.plots = plot_rows(exp)
+        self.traces = {name: np.full((K, 1 + len(agents)), np.nan) for name, _, agents in self.plots}
+        #: estimator diagnostics: name -> (rounds, agents), NaN where not reported
+        self.diagnostics: dict[str, np.ndarray] = {}
+        #: (rounds, agents): 1.0 flagged, 0.0 not, NaN not reported; None until one is
+        self.flags: np.ndarray | None = None
+
+    def record_diagnostics(self, k: int, i: int, values: Mapping[str, float] | None,
+                           flagged: bool | None = None) -> None:
+        """Record agent index ``i``'s diagnostics and attack flag of round ``k``
+        (see the module docstring; :func:`read_diagnostics` reads them off an estimator)."""
+        K = self.error_2.shape[0]
+        if values:
+            for name, v in values.items():
+                arr = self.diagnostics.get(name)
+                if arr is None:
+                    arr = self.diagnostics[name] = np.full((K, self.exp.N), np.nan)
+                arr[k, i] = v
+        if flagged is not None:
+            if self.flags is None:
+                self.flags = np.full((K, self.exp.N), np.nan)
+            self.flags[k, i] = 1.0 if flagged else 0.0
 
     def record(self, k: int, x: np.ndarray, estimates: np.ndarray, present: np.ndarray | None = None) -> None:
         """Record round ``k``: ``x`` (n,), ``estimates`` (N, n); ``present`` (N,) bool mask
@@ -65,8 +139,12 @@ class Monitor:
         c = len(rows)
         E = self._est[:c] - self._x[:c, None, :]
         for b, idx in enumerate(self._blocks):
-            Eb = E if self._whole[b] else E[:, :, idx]
-            xb = self._x[:c] if self._whole[b] else self._x[:c, idx]
+            M = self._maps[b]
+            if M is not None:
+                Eb, xb = E @ M.T, self._x[:c] @ M.T
+            else:
+                Eb = E if self._whole[b] else E[:, :, idx]
+                xb = self._x[:c] if self._whole[b] else self._x[:c, idx]
             e2 = np.sqrt(np.einsum("kij,kij->ki", Eb, Eb))
             with np.errstate(invalid="ignore"):
                 einf = np.max(np.abs(Eb), axis=2)
@@ -78,6 +156,12 @@ class Monitor:
             rel[(xn[:, None] == 0) & (e2 == 0)] = 0.0
             self.relative_error_2[rows, :, b] = rel
             self.truth_norm[rows, b] = xn
+        for name, row, agents in self.plots:
+            tr = self.traces[name]
+            tr[rows, 0] = self._x[:c] @ row
+            tr[rows, 1:] = self._est[:c][:, [self.exp.agent_ids.index(a) for a in agents]] @ row
+        if self.on_chunk is not None:
+            self.on_chunk(rows, self._x[:c], self._est[:c])
         self._est[:c] = np.nan
         self._rows.clear()
 

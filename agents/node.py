@@ -41,6 +41,8 @@ class AgentNode:
         #: the estimate itself is the payload (no separate ``estimator.estimate`` call)
         self.payload_is_estimate = bool(getattr(estimator, "payload_is_estimate", False))
         self.inbox: dict[int, Received] = {}
+        #: indices of the in-neighbours whose message became visible in the current round
+        self.arrived: set[int] = set()
         self._pending: dict[int, list[Received]] = {}
         self.links: dict[int, LinkCounters] = {j: LinkCounters() for j in in_neighbours}
         self.round: int | None = None
@@ -70,8 +72,11 @@ class AgentNode:
             c.rejected += 1
 
     def _release(self, k: int) -> None:
+        arrived = self.arrived
+        arrived.clear()
         for when in [w for w in self._pending if w <= k]:
             for r in self._pending.pop(when):
+                arrived.add(r.sender)
                 old = self.inbox.get(r.sender)
                 if old is None or r.stamp > old.stamp:
                     self.inbox[r.sender] = r
@@ -85,6 +90,8 @@ class AgentNode:
         """
         if self._pending:
             self._release(k)
+        elif self.arrived:
+            self.arrived.clear()
         self.round = k
         return self.estimator.step(k, measurement, self.inbox)
 

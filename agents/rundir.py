@@ -98,6 +98,49 @@ def write_metrics(run_dir: Path, exp: Experiment, mon: Monitor, regular: np.ndar
         "relative_error_2": mon.relative_error_2[:K].reshape(-1),
     })
     pq.write_table(table, run_dir / "metrics.parquet", compression="zstd")
+    write_diagnostics(run_dir, exp, mon)
+    write_traces(run_dir, exp, mon)
+
+
+def write_traces(run_dir: Path, exp: Experiment, mon: Monitor) -> None:
+    """``traces.parquet``: the ``[[output.plots]]`` combinations of the true state and of the
+    chosen agents' estimates, one row per (round, plot, series): ``k, t, plot, series, value``
+    (series ``"truth"`` or ``"agent I"``)."""
+    K = mon.last_round + 1
+    cols: dict[str, list] = {"k": [], "t": [], "plot": [], "series": [], "value": []}
+    ks = np.arange(K, dtype=np.int64)
+    for name, _, agents in mon.plots:
+        tr = mon.traces[name][:K]
+        for s, label in enumerate(["truth"] + [f"agent {a}" for a in agents]):
+            cols["k"].append(ks)
+            cols["t"].append(ks * exp.dt)
+            cols["plot"].append(np.full(K, name, dtype=object))
+            cols["series"].append(np.full(K, label, dtype=object))
+            cols["value"].append(tr[:, s])
+    if not cols["k"]:
+        return
+    table = pa.table({c: (np.concatenate(v) if c in ("k", "t", "value") else pa.array(np.concatenate(v).tolist()))
+                      for c, v in cols.items()})
+    pq.write_table(table, run_dir / "traces.parquet", compression="zstd")
+
+
+def write_diagnostics(run_dir: Path, exp: Experiment, mon: Monitor) -> None:
+    """``diagnostics.parquet``, one row per (round, agent): ``k, t, agent``, ``flagged``
+    (null where the estimator has no flag) and one column per estimator diagnostic
+    (:mod:`agents.monitor`). Not written when no estimator exposes any."""
+    if not mon.diagnostics and mon.flags is None:
+        return
+    K, N = mon.last_round + 1, exp.N
+    k = np.repeat(np.arange(K, dtype=np.int64), N)
+    cols: dict[str, Any] = {"k": k, "t": k * exp.dt, "agent": np.tile(np.array(exp.agent_ids, dtype=np.int32), K)}
+    if mon.flags is not None:
+        f = mon.flags[:K].reshape(-1)
+        cols["flagged"] = pa.array(f == 1.0, mask=np.isnan(f))
+    for name, arr in mon.diagnostics.items():
+        if name in cols:
+            name = f"diag_{name}"
+        cols[name] = arr[:K].reshape(-1)
+    pq.write_table(pa.table(cols), run_dir / "diagnostics.parquet", compression="zstd")
 
 
 def write_design(run_dir: Path, exp: Experiment) -> None:

@@ -6,7 +6,8 @@ Every role of the scenario in one Python process, round by round (DESIGN.md, "On
 2. every agent takes its measurement and its inbox and publishes its message stamped ``k``;
 3. every message is handed to each out-neighbour's node, whose channel model decides when
    (if ever) it becomes visible;
-4. the monitor records the errors of round ``k``; the plant advances.
+4. the monitor records the errors of round ``k`` (and the diagnostics / attack flags of
+   estimators that expose them, :func:`agents.monitor.read_diagnostics`); the plant advances.
 
 Deterministic for a given seed.
 """
@@ -15,7 +16,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -23,7 +24,7 @@ from scenarios.build import Experiment
 from transport.byzantine import Forged
 from transport.channel import Channel, loss_windows
 
-from .monitor import Monitor
+from .monitor import Monitor, has_diagnostics, read_diagnostics
 from .node import AgentNode
 from .plant import PlantRole
 
@@ -110,6 +111,7 @@ def simulate(
     progress: Callable[[int, float], None] | None = None,
     keep_trajectories: bool = False,
     record: bool = True,
+    dashboard: Any = None,
 ) -> SimResult:
     """Run the scenario in-process.
 
@@ -118,6 +120,7 @@ def simulate(
     progress : called as ``progress(k, worst_error_inf)`` every 256 rounds and at the end
     keep_trajectories : also return every estimate and the true state (for equivalence tests)
     record : compute the monitor's metrics (benchmarks may switch it off)
+    dashboard : an :class:`agents.dashboard.Dashboard` to stream to (or None)
     """
     channel = make_channel(exp)
     nodes = make_nodes(exp, channel)
@@ -133,10 +136,19 @@ def simulate(
         nodes[i].view = view
     static = exp.static
     rows = exp.agent_rows
+    diag = [(i, nodes[i].estimator) for i in range(N) if has_diagnostics(nodes[i].estimator)]
+    frames: dict[int, np.ndarray] = {}
+    if dashboard is not None:
+        def on_chunk(chunk_rows, xs, ests):
+            counters = np.array([[sum(getattr(c, f) for c in node.links.values())
+                                  for f in ("delivered", "dropped", "late", "rejected")] for node in nodes], dtype=float)
+            dashboard.log_chunk(chunk_rows, mon, x=xs, est=ests, delivered=frames, counters=counters)
+            frames.clear()
+        mon.on_chunk = on_chunk
     est_out = np.empty((N, n))
     traj = np.empty((K + 1, N, n)) if keep_trajectories else None
     truth = np.empty((K + 1, n)) if keep_trajectories else None
-    t0 = time.perf_counter()
+    t0 = last_flush = time.perf_counter()
     for k in range(K + 1):
         y = plant.measure(k)
         view.k = k
@@ -152,13 +164,24 @@ def simulate(
             msg = node.publish(k, out) if node.strategy is not None else out
             deliver(node, k, msg, targets[i])
         x = plant.x
+        if dashboard is not None and dashboard.is_map_frame(k):
+            D = np.zeros((N, N), dtype=bool)
+            for i, node in enumerate(nodes):
+                for j in node.arrived:
+                    D[i, j] = True
+            frames[k] = D
         if record:
             mon.record(k, x, est_out)
+            for i, est in diag:
+                mon.record_diagnostics(k, i, *read_diagnostics(est))
         if keep_trajectories:
             traj[k] = est_out
             truth[k] = x
         if progress is not None and (k & 255 == 0 or k == K):
             progress(k, mon.current_worst() if record else float("nan"))
+            if dashboard is not None and time.perf_counter() - last_flush > 0.5:
+                mon.flush()  # keep the live view fresh
+                last_flush = time.perf_counter()
         if k < K:
             plant.advance(k)
     mon.flush()

@@ -5,6 +5,11 @@ over the output window and the convergence round (the first round from which the
 stays below ``[output] convergence_threshold``: ``error_inf`` for bounded plants, checked
 on ``relative_error_2`` when the block's true state grows past 1e3), plus the same for the
 worst regular agent, link counters and the expectations with their measured values.
+
+When estimators expose diagnostics or attack flags (:mod:`agents.monitor`), the summary
+also has ``diagnostics`` (per agent and name: final value, largest magnitude overall and
+over the window) and ``detected_attacks`` (the agents flagged in some round, and per
+flagging agent the number of flagged rounds and the first and last flagged time).
 """
 
 from __future__ import annotations
@@ -119,7 +124,7 @@ def summarise(exp: Experiment, mon: Monitor, regular: np.ndarray, links: dict[st
             else:
                 rec[key] = _nanmax(np.array(vals, dtype=float))
         worst[name] = rec
-    return {
+    out = {
         "scenario": exp.scenario.run.name,
         "rounds": last,
         "t_final": last * exp.dt,
@@ -130,3 +135,47 @@ def summarise(exp: Experiment, mon: Monitor, regular: np.ndarray, links: dict[st
         "links": links,
         "rejected": rejected or {},
     }
+    out.update(diagnostics_summary(exp, mon))
+    return out
+
+
+def diagnostics_summary(exp: Experiment, mon: Monitor) -> dict[str, Any]:
+    """``diagnostics`` and ``detected_attacks`` of ``summary.json`` (empty when no
+    estimator exposes them)."""
+    last = mon.last_round
+    if last < 0:
+        return {}
+    win = _rounds(exp, "window", last)
+    out: dict[str, Any] = {}
+    if mon.diagnostics:
+        per: dict[str, Any] = {}
+        for i, aid in enumerate(exp.agent_ids):
+            rec = {}
+            for name, arr in mon.diagnostics.items():
+                series = arr[: last + 1, i]
+                if np.all(np.isnan(series)):
+                    continue
+                rec[name] = {"final": float(series[last]), "max_abs": _nanmax(np.abs(series)),
+                             "window_max_abs": _nanmax(np.abs(series[win]))}
+            if rec:
+                per[str(aid)] = rec
+        out["diagnostics"] = per
+    if mon.flags is not None:
+        flags = mon.flags[: last + 1]
+        by_agent: dict[str, Any] = {}
+        for i, aid in enumerate(exp.agent_ids):
+            col = flags[:, i]
+            if np.all(np.isnan(col)):
+                continue
+            up = np.flatnonzero(col == 1.0)
+            by_agent[str(aid)] = {
+                "flagged_rounds": int(up.size),
+                "first_t": float(up[0] * exp.dt) if up.size else None,
+                "last_t": float(up[-1] * exp.dt) if up.size else None,
+                "flagged_at_end": bool(col[last] == 1.0),
+            }
+        out["detected_attacks"] = {
+            "agents": [int(a) for a in exp.agent_ids if by_agent.get(str(a), {}).get("flagged_rounds")],
+            "by_agent": by_agent,
+        }
+    return out

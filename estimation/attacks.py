@@ -9,6 +9,14 @@ row of the targeted banks:
 * ``random``: i.i.d. uniform on ``[-scale, scale]`` per round and per targeted row, drawn
   from a generator seeded by ``(seed, attack index)``; evaluated once per round in
   increasing round order (both drivers' plant does exactly that).
+* ``trajectory`` (dynamics-consistent, Mao-Tabuada's attack model): the targeted rows
+  report the output of the plant started from another initial state ``x0_attack``,
+  ``y_i[k] = C_i x_a[k]``. For an LTI plant ``x[k+1] = Ad x[k] + Bd u[k]`` the known
+  input cancels in ``x_a - x``, so the corruption is ``a[k] = C_rows Ad^k (x0_attack - x0)``
+  (per row, not one scalar for all rows), a function of the round alone. It is built
+  from ``C`` (the targeted rows of the output matrix), ``Ad``, ``d0 = x0_attack - x0``
+  and ``dt`` (round ``k = t / dt``); the trajectory starts at round 0 even when ``start``
+  is later (switching it on mid-run is then a jump that a sanity check can see).
 """
 
 from __future__ import annotations
@@ -39,6 +47,13 @@ class SensorAttackSignal:
     phase: float = 0.0
     scale: float = 0.0
     rng: np.random.Generator | None = field(default=None, repr=False)
+    #: kind "trajectory": targeted rows of C (r, n), the sampled plant Ad (n, n),
+    #: d0 = x0_attack - x0 (n,), and the round step dt
+    C: np.ndarray | None = field(default=None, repr=False)
+    Ad: np.ndarray | None = field(default=None, repr=False)
+    d0: np.ndarray | None = field(default=None, repr=False)
+    dt: float = 1.0
+    _cache: tuple[int, np.ndarray] | None = field(default=None, init=False, repr=False)
 
     def active(self, t: float) -> bool:
         return self.start <= t < self.stop
@@ -58,4 +73,20 @@ class SensorAttackSignal:
             if self.rng is None:
                 raise ValueError("random attack needs a generator")
             return self.rng.uniform(-self.scale, self.scale, size=r)
+        if self.kind == "trajectory":
+            return self.C @ self._offset(int(round(t / self.dt)))
         raise ValueError(f"unknown sensor attack kind {self.kind!r}")
+
+    def _offset(self, k: int) -> np.ndarray:
+        """``Ad^k d0`` (kind "trajectory"), advanced from the last round asked for
+        (rounds are asked in increasing order; an earlier round restarts from ``d0``)."""
+        if self.C is None or self.Ad is None or self.d0 is None:
+            raise ValueError("trajectory attack needs C, Ad and d0")
+        if self._cache is None or self._cache[0] > k:
+            self._cache = (0, np.array(self.d0, dtype=float))
+        j, d = self._cache
+        while j < k:
+            d = self.Ad @ d
+            j += 1
+        self._cache = (k, d)
+        return d

@@ -148,6 +148,17 @@ def distflow_paths(*, R: np.ndarray, X: np.ndarray, R_cable: np.ndarray, X_cable
     return Rp, Xp
 
 
+class DroopNonlinearity:
+    """``phi_i(z_i) = Psi_i(z_i) / tau_i`` of (7), componentwise (a picklable callable)."""
+
+    def __init__(self, params: InverterParams) -> None:
+        self.params = params
+
+    def __call__(self, z: np.ndarray) -> np.ndarray:
+        p = self.params
+        return (1.0 / p.tau) * droop(z, Q_bar=p.Q_bar, w_min=p.w_min, w_m=p.w_m, w_n=p.w_n, w_max=p.w_max)
+
+
 class InverterNetwork:
     """The line of ``N`` inverters in the coordinates of (7): ``x = q_g``, ``z = v_bar^2 - v^2``.
 
@@ -161,6 +172,9 @@ class InverterNetwork:
     Rp, Xp : (N, N) arrays, shared-path resistance / reactance
     plant : LurePlant with ``A = diag(-1/tau)``, ``H = -2 Xp``, ``phi_i = Psi_i / tau_i``,
         slope bounds ``[0, e_bar / tau_i]`` and the known input ``w(t)``
+
+    The network, its plant and its bound methods pickle (no closures), so estimators built
+    on them can be shipped to other processes.
     """
 
     def __init__(self, params: InverterParams | None = None) -> None:
@@ -170,11 +184,7 @@ class InverterNetwork:
         # constant part of w(t) = v_bar^2 - v0(t)^2 - 2 Rp rho + 2 Xp q_c
         self._w_loads = -2.0 * self.Rp @ rho + 2.0 * self.Xp @ p.q_c
         inv_tau = 1.0 / p.tau
-
-        def phi(z: np.ndarray) -> np.ndarray:
-            return inv_tau * droop(z, Q_bar=p.Q_bar, w_min=p.w_min, w_m=p.w_m, w_n=p.w_n, w_max=p.w_max)
-
-        self.plant = LurePlant.build(A=np.diag(-inv_tau), H=-2.0 * self.Xp, phi=phi,
+        self.plant = LurePlant.build(A=np.diag(-inv_tau), H=-2.0 * self.Xp, phi=DroopNonlinearity(p),
                                      slope_upper=p.e_bar * inv_tau, w=self.w)
 
     @property

@@ -209,7 +209,11 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
         if model.cell_of_location is None:
             raise ScenarioError(f"agents: kind 'cell_patrols' needs a plant with cells (cells, diffusion), got {sc.plant.model!r}", source=source)
         try:
-            gen = cell_patrols(model.cell_of_location, agents_per_cell=sc.agents.per_cell, periods=sc.agents.periods)
+            K = int(model.cell_of_location.max()) + 1
+            per = list(sc.agents.periods)
+            if K % len(per):
+                raise ScenarioError(f"agents.periods: {len(per)} periods do not repeat evenly over {K} cells", source=source)
+            gen = cell_patrols(model.cell_of_location, agents_per_cell=sc.agents.per_cell, periods=per * (K // len(per)))
         except DesignError as exc:
             raise ScenarioError(f"agents: {exc}", source=source) from None
         patrols = list(gen)
@@ -304,11 +308,14 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
                 if not 1 <= s <= nb:
                     raise ScenarioError(f"attacks[{k}].sensors: no sensor bank {s}; banks are 1..{nb}", source=source)
             rows = np.concatenate([bank_rows[s - 1] for s in at.sensors])
+            traj: dict[str, Any] = {}
+            if at.kind == "trajectory":
+                traj = _trajectory_attack(at, k, rows, plant.C, Ad, x0, model, sc, source)
             attacks.append(
                 SensorAttackSignal(
                     rows=rows, kind=at.kind, start=at.start, stop=at.stop, value=at.value, slope=at.slope,
                     amplitude=at.amplitude, omega=at.omega, phase=at.phase, scale=at.scale,
-                    rng=rng_for(sc.run.seed, STREAM_SENSOR_ATTACK, k) if at.kind == "random" else None,
+                    rng=rng_for(sc.run.seed, STREAM_SENSOR_ATTACK, k) if at.kind == "random" else None, **traj,
                 )
             )
     exp = Experiment(
@@ -326,6 +333,22 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     exp.stepper = model.stepper
     exp.design = exp.plugin.design(exp, check=check_conditions)
     return exp
+
+
+def _trajectory_attack(at: Any, k: int, rows: np.ndarray, C: np.ndarray, Ad: np.ndarray, x0: np.ndarray,
+                       model: PlantModel, sc: Scenario, source: str) -> dict[str, Any]:
+    """Keyword arguments of a ``trajectory`` sensor attack: the outputs of the plant
+    started from ``x0_attack`` (an LTI plant only: the known input cancels in the offset)."""
+    if model.stepper is not None:
+        raise ScenarioError(f"attacks[{k}].kind: 'trajectory' needs an LTI plant; model {sc.plant.model!r} has its own "
+                            "(nonlinear or noisy) step", source=source)
+    xa = np.asarray(at.x0_attack, dtype=float)
+    if xa.shape != x0.shape:
+        raise ScenarioError(f"attacks[{k}].x0_attack: expected {x0.shape[0]} numbers (the state dimension), got {xa.shape[0]}",
+                            source=source)
+    if not np.all(np.isfinite(xa)):
+        raise ScenarioError(f"attacks[{k}].x0_attack: entries must be finite", source=source)
+    return {"C": C[rows].copy(), "Ad": np.array(Ad, dtype=float), "d0": xa - x0, "dt": float(sc.run.dt)}
 
 
 def _ids(v: Any) -> list[int]:
@@ -392,6 +415,11 @@ def _check_expectations(exp: Experiment, source: str) -> None:
 def conditions(exp: Experiment) -> list[Condition]:
     """Evaluate the scenario's conditions (never raises for a failed condition)."""
     out: list[Condition] = []
+    graph_conditions = getattr(exp.plugin, "graph_conditions", None)
+    if graph_conditions is not None:  # the plugin states its own graph assumption (e.g. directed graphs)
+        out.extend(graph_conditions(exp))
+        out.extend(exp.plugin.conditions(exp))
+        return out
     Adj = exp.Adj
     comps = graphs.components(Adj)
     undirected = graphs.is_undirected(Adj)

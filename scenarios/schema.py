@@ -110,6 +110,7 @@ class CellPatrols(Strict):
 
     kind: Literal["cell_patrols"]
     per_cell: int = Field(default=4, ge=1)
+    #: one period per cell; a shorter list is repeated over the cells (``[14]``: every cell 14)
     periods: list[int] = Field(min_length=1)
 
 
@@ -179,7 +180,7 @@ Estimator = Annotated[Union[estimator_sections()], Field(discriminator="algorith
 class SensorAttack(Strict):
     target: Literal["sensor"]
     sensors: list[int] = Field(min_length=1, description="1-based sensor bank ids")
-    kind: Literal["constant", "ramp", "sine", "random"]
+    kind: Literal["constant", "ramp", "sine", "random", "trajectory"]
     start: float = 0.0
     stop: float = math.inf
     value: float = 0.0
@@ -188,11 +189,17 @@ class SensorAttack(Strict):
     omega: float = 0.0
     phase: float = 0.0
     scale: float = 0.0
+    #: kind "trajectory": the attacked rows report the output of the plant started here
+    x0_attack: Vector | None = None
 
     @model_validator(mode="after")
     def _window(self) -> "SensorAttack":
         if not self.start < self.stop:
             raise ValueError(f"start must be < stop, got start={self.start}, stop={self.stop}")
+        if self.kind == "trajectory" and self.x0_attack is None:
+            raise ValueError("kind 'trajectory' needs x0_attack (the initial state whose outputs the sensors report)")
+        if self.kind != "trajectory" and self.x0_attack is not None:
+            raise ValueError(f"x0_attack is only used by kind 'trajectory', not {self.kind!r}")
         return self
 
 
@@ -216,8 +223,24 @@ Attack = Annotated[Union[SensorAttack, AgentAttack], Field(discriminator="target
 
 
 # --------------------------------------------------------------------------- [output] / [[expect]]
+class StatePlot(Strict):
+    """A linear combination of the state drawn against agents' estimates (dashboard, report)."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_.+-]+$")
+    states: list[int] = Field(min_length=1, description="1-based state indices")
+    weights: list[float] | None = None
+    agents: list[int] | None = Field(default=None, description="agent ids (default: the first agent)")
+
+    @model_validator(mode="after")
+    def _weights(self) -> "StatePlot":
+        if self.weights is not None and len(self.weights) != len(self.states):
+            raise ValueError(f"weights must have one entry per state, got {len(self.weights)} for {len(self.states)}")
+        return self
+
+
 class OutputSection(Strict):
     window: tuple[float, float] | None = Field(default=None, description="[t0, t1] seconds")
+    plots: list[StatePlot] = Field(default_factory=list)
     convergence_threshold: float = Field(default=1e-2, gt=0)
 
 

@@ -1,5 +1,9 @@
 import os
-import shutil
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # as the rse command does
+    os.environ.setdefault(_var, "1")
+
+import shutil  # noqa: E402
 import subprocess
 import sys
 from pathlib import Path

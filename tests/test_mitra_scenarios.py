@@ -114,3 +114,14 @@ def test_patrol_validation_errors_name_the_agent():
     with pytest.raises(ScenarioError, match="cell 3: period 9 is shorter than its 10 locations"):
         sc, _ = validate(raw, source="x.toml")
         build(sc, source="x.toml")
+
+
+def test_generated_teams_of_any_size():
+    """cells with K cells and 4 agents per cell from one file with --set (Section 8 layout)."""
+    exp, res = run("mitra_cells.toml", "plant.params.K=8", "agents.periods=[13, 14]", "run.rounds=150",
+                   "expect=[]", "network.channel.drop_p=0.0")
+    assert exp.N == 32 and exp.n == 160
+    assert np.max(metric(exp, res, "relative_error_2", rounds=-1)) <= 1e-9
+    from estimation.errors import ScenarioError
+    with pytest.raises(ScenarioError, match="3 periods do not repeat evenly over 8 cells"):
+        run("mitra_cells.toml", "plant.params.K=8", "agents.periods=[13, 14, 14]")

@@ -11,6 +11,8 @@ A plugin module defines:
 * ``make_estimator(exp, i)``: a fresh estimator for agent index ``i``;
 * ``conditions(exp) -> list[Condition]``: what ``rse check`` prints;
 * ``design_json(exp) -> dict``: the design as written to ``design.json``.
+* ``graph_conditions(exp) -> list[Condition]``: optional; replaces the generic
+  connectivity lines of ``rse check`` (e.g. for an algorithm made for directed graphs).
 
 To add an algorithm, write its module and add its name to :data:`MODULES`.
 """
@@ -24,6 +26,9 @@ from types import ModuleType
 MODULES = (
     "scenarios.plugins.lee_kim_shim",
     "scenarios.plugins.mitra",
+    "scenarios.plugins.mao_tabuada",
+    "scenarios.plugins.ugrinovskii",
+    "scenarios.plugins.inverters",
 )
 
 

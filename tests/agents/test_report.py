@@ -50,3 +50,34 @@ def test_report_on_a_missing_directory_is_a_clear_error(run_rse, tmp_path):
     (tmp_path / "half" / "manifest.json").write_text("{}")
     res = run_rse("report", str(tmp_path / "half"))
     assert res.returncode == 2 and "missing summary.json, metrics.parquet" in res.stderr
+
+
+def test_report_table_is_the_same_for_both_drivers(tmp_path):
+    """A run directory written by the networked roles (over the in-memory bus, the same
+    protocol as `rse run`) reports the same table as one written by `rse simulate`."""
+    import asyncio
+
+    from agents.cli import load_experiment
+    from agents.net.roles import RunConfig, run_team_in_memory
+    from agents.report import load_run, table_rows
+    from agents.rundir import write_json, write_metrics
+    from agents.simulate import simulate
+    from agents.summary import evaluate, summarise
+
+    ov = ("run.dt=0.01", "run.duration=12", "output.window=[8.0, 12.0]", "expect=[]")
+    exp, _ = load_experiment(SCENARIOS / "lee_kim_shim.toml", ov, None)
+    sim_dir = tmp_path / "sim"
+    sim_dir.mkdir()
+    res = simulate(exp)
+    write_metrics(sim_dir, exp, res.monitor, res.regular)
+    summ = summarise(exp, res.monitor, res.regular, res.links)
+    summ["expectations"] = [r.as_dict() for r in evaluate(exp, res.monitor, res.regular)]
+    write_json(sim_dir / "summary.json", summ)
+    write_json(sim_dir / "manifest.json", {"driver": "simulate", "scenario": {"run": {"name": "lee_kim_shim"}}})
+    exp, _ = load_experiment(SCENARIOS / "lee_kim_shim.toml", ov, None)
+    net_dir = tmp_path / "net"
+    asyncio.run(asyncio.wait_for(run_team_in_memory(exp, RunConfig(deadline=5.0), out_dir=net_dir), 120))
+    write_json(net_dir / "manifest.json", {"driver": "run", "scenario": {"run": {"name": "lee_kim_shim"}}})  # the launcher's part
+    a, b = load_run(sim_dir), load_run(net_dir)
+    rows = table_rows(a)
+    assert len(rows) == 10 and rows == table_rows(b)

@@ -1,0 +1,52 @@
+"""Monitor blocks over transformed coordinates: a 2-D block ``M`` gives the metrics of
+``M (x_hat - x)`` (agents.monitor)."""
+
+import numpy as np
+import pytest
+
+from agents.monitor import Monitor
+from scenarios.build import build
+from scenarios.loader import load
+from tests.conftest import SCENARIOS
+
+
+def _exp(blocks):
+    """A real experiment (the Lee-Kim-Shim plant, n = 6, five agents) with these blocks."""
+    sc, _ = load(SCENARIOS / "lee_kim_shim.toml", ["run.duration=0.004", "run.dt=0.001", "expect=[]", "output.window=[0.0, 0.004]"])
+    exp = build(sc, source="lee_kim_shim.toml")
+    exp.blocks = dict(blocks)
+    return exp
+
+
+def test_matrix_block_metrics_are_those_of_the_mapped_error():
+    M = np.array([[1.0, -2.0, 0.0, 0.0, 0.0, 1.0], [0.5, 0.0, 3.0, 0.0, -1.0, 0.0]])
+    mon = Monitor(_exp({"x": np.arange(6), "odd": np.array([1]), "Mx": M}))
+    rng = np.random.default_rng(0)
+    xs, ests = rng.normal(size=(5, 6)), rng.normal(size=(5, 5, 6))
+    for k in range(5):
+        mon.record(k, xs[k], ests[k])
+    b = mon.block_names.index("Mx")
+    E = (ests - xs[:, None, :]) @ M.T  # (rounds, agents, 2)
+    np.testing.assert_allclose(mon.metric("error_inf")[:, :, b], np.abs(E).max(axis=2))
+    np.testing.assert_allclose(mon.metric("error_2")[:, :, b], np.linalg.norm(E, axis=2))
+    np.testing.assert_allclose(mon.truth_norm[:, b], np.linalg.norm(xs @ M.T, axis=1))
+    np.testing.assert_allclose(mon.metric("relative_error_2")[:, :, b],
+                               np.linalg.norm(E, axis=2) / np.linalg.norm(xs @ M.T, axis=1)[:, None])
+    # index blocks unchanged
+    np.testing.assert_allclose(mon.metric("error_inf")[:, :, 1], np.abs(ests[:, :, 1] - xs[:, None, 1]))
+    np.testing.assert_allclose(mon.metric("error_2")[:, :, 0], np.linalg.norm(ests - xs[:, None, :], axis=2))
+
+
+def test_identity_matrix_block_equals_the_whole_state_and_absent_agents_are_nan():
+    mon = Monitor(_exp({"x": np.arange(6), "I": np.eye(6)}))
+    x, est = np.ones(6), np.arange(30.0).reshape(5, 6)
+    mon.record(0, x, est, present=np.array([True, False, True, True, True]))
+    for m in ("error_2", "error_inf", "relative_error_2"):
+        a = mon.metric(m)[0]
+        np.testing.assert_array_equal(a[:, 0], a[:, 1])
+        assert np.isnan(a[1, 1]) and not np.isnan(a[0, 1])
+
+
+def test_matrix_block_needs_n_columns():
+    with pytest.raises(ValueError, match="6 columns"):
+        Monitor(_exp({"x": np.arange(6), "bad": np.ones((2, 4))}))
