@@ -147,6 +147,34 @@ class Wire:
         self.stats = Schema({"ctl": {"links": (None, 6), "rejected": (None, 3)}})
 
 
+DIAG_PREFIX = "d_"
+MAX_DIAGNOSTICS = 12  # the codec carries at most 16 metadata entries
+
+
+def diagnostics_meta(estimator: Any) -> dict[str, Any]:
+    """An estimator's diagnostics and attack flag as done-report metadata
+    (``flag``; ``d:NAME`` per finite value; a non-finite value is left out and reads as
+    missing, NaN, at the monitor)."""
+    from agents.monitor import read_diagnostics
+
+    diag, flag = read_diagnostics(estimator)
+    meta: dict[str, Any] = {}
+    if flag is not None:
+        meta["flag"] = bool(flag)
+    for name, v in list((diag or {}).items())[:MAX_DIAGNOSTICS]:
+        key = DIAG_PREFIX + name
+        if np.isfinite(v) and len(key) <= 32 and key.replace("_", "a").isalnum() and key.isascii():
+            meta[key] = float(v)  # names the codec cannot carry are left out
+    return meta
+
+
+def diagnostics_from_meta(meta: Any) -> tuple[dict[str, float], bool | None]:
+    diag = {k[len(DIAG_PREFIX):]: float(v) for k, v in meta.items()
+            if isinstance(k, str) and k.startswith(DIAG_PREFIX) and isinstance(v, (int, float)) and not isinstance(v, bool)}
+    flag = meta.get("flag")
+    return diag, (bool(flag) if isinstance(flag, bool) else None)
+
+
 class Rejects:
     """Bad messages per claimed sender and reason."""
 
@@ -586,6 +614,9 @@ class AgentProcess(Role):
         self.waited_out = 0
         self._timer: asyncio.TimerHandle | None = None
         self._own_estimate = getattr(self.node, "estimate", None)
+        from agents.monitor import has_diagnostics
+
+        self._diagnostics = has_diagnostics(self.node.estimator)
         self._est_key = keys.est(agent_id)
         self._done_key = keys.ctl("done", agent_id)
         self._ready_key = keys.ctl("ready", agent_id)
@@ -768,9 +799,11 @@ class AgentProcess(Role):
         except MessageError as exc:  # a non-finite estimate cannot go on the wire
             log.warning("agent %d: round %d message not sent: %s", aid, k, exc)
             to, stamps = [], []
-        meta = {}
+        meta: dict[str, Any] = {}
         if not np.all(np.isfinite(own)):
             own, meta = np.zeros_like(own), {"nonfinite": True}
+        if self._diagnostics:
+            meta.update(diagnostics_meta(node.estimator))
         bus.publish(self._done_key, _msg("done", aid, k, {"x": own, "to": np.array(to, dtype=float), "stamps": np.array(stamps, dtype=float)}, meta=meta or None))
 
     def _step(self) -> None:
@@ -903,6 +936,7 @@ class _Round:
     x: np.ndarray | None = None
     est: np.ndarray | None = None
     present: np.ndarray | None = None
+    diag: dict[int, tuple[dict[str, float], bool | None]] = field(default_factory=dict)
 
 
 @dataclass
@@ -1037,6 +1071,10 @@ class MonitorProcess(Role):
             if not m.meta.get("nonfinite"):
                 r.est[i] = m.arrays["x"]
             r.present[i] = True
+            if m.meta:
+                diag, flag = diagnostics_from_meta(m.meta)
+                if diag or flag is not None:
+                    r.diag[i] = (diag, flag)
             if self.dashboard is not None:
                 self._links_of(p.sender, k, m.arrays["to"], m.arrays["stamps"])
         elif "/ctl/stats/" in key:
@@ -1071,6 +1109,8 @@ class MonitorProcess(Role):
                 break
             if r is not None and r.x is not None:
                 self.mon.record(k, r.x, r.est, r.present)
+                for i, (diag, flag) in r.diag.items():
+                    self.mon.record_diagnostics(k, i, diag, flag)
                 if self.traj is not None:
                     self.traj[k] = np.where(r.present[:, None], r.est, np.nan)
                     self.truth[k] = r.x
