@@ -167,8 +167,9 @@ def test_two_teams_at_once_equal_the_simulator_with_bad_bytes_injected(procs, tm
                      "--set", "expect.0.max=1.0")
     a, b = tmp_path / "a", tmp_path / "b"
     t0 = time.monotonic()
-    pa = procs.start(_cmd("run", str(LKS), *lossy, "--rate", "150", "--out", str(a), "--save-estimates", "--no-progress"))
-    pb = procs.start(_cmd("run", str(MITRA), "--out", str(b), "--save-estimates", "--no-progress"))
+    pa = procs.start(_cmd("run", str(LKS), *lossy, "--rate", "150", "--out", str(a), "--save-estimates", "--no-progress",
+                                  "--deadline", "30"))  # lockstep semantics even on a loaded machine
+    pb = procs.start(_cmd("run", str(MITRA), "--out", str(b), "--save-estimates", "--no-progress", "--deadline", "30"))
     team = _wait_file(a / "team.json", 30)
     inj = procs.start([sys.executable, "-c", INJECT, str(a / "team.json"), "40"])
     outs = [p.communicate(timeout=max(1.0, 55 - (time.monotonic() - t0))) for p in (pa, pb)]
