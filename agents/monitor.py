@@ -88,7 +88,7 @@ class Monitor:
         self.relative_error_2 = np.full(shape, np.nan)
         self.truth_norm = np.full((K, len(self._blocks)), np.nan)
         self.last_round = -1
-        self._chunk = max(1, min(1024, self.CHUNK_BYTES // max(1, exp.N * exp.n * 8)))
+        self._chunk = max(1, min(1024, K, self.CHUNK_BYTES // max(1, exp.N * exp.n * 8)))
         self._est = np.full((self._chunk, exp.N, exp.n), np.nan)
         self._x = np.zeros((self._chunk, exp.n))
         self._rows: list[int] = []

@@ -168,7 +168,9 @@ def fuse_block(block: np.ndarray, *, fusion: str, f: int) -> np.ndarray:
     if fusion == "trimmed":
         if f == 0:
             return block.sum(axis=0) / d
-        return np.sort(block, axis=0)[f : d - f].sum(axis=0) / (d - 2 * f)
+        srt = np.array(block)  # a copy: never sort the caller's array
+        srt.sort(axis=0)
+        return srt[f : d - f].sum(axis=0) / (d - 2 * f)
     if fusion == "median":
         srt = np.sort(block, axis=0)
         return srt[d // 2] if d % 2 else 0.5 * (srt[d // 2 - 1] + srt[d // 2])
