@@ -29,6 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from .monitor import plot_rows
+
 MAP_FRAMES = 2000
 REGULAR_COLORS = [
     (31, 119, 180), (44, 160, 44), (148, 103, 189), (23, 190, 207), (188, 189, 34), (140, 86, 75),
@@ -98,6 +100,8 @@ class Dashboard:
             port = options.viewer_port
             rr.spawn(port=port, connect=False)
             sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
+        # relative errors are logged (and shown first) for unstable plants
+        self._unstable = exp.n <= 2000 and bool(np.max(np.abs(np.linalg.eigvals(exp.Ad))) > 1.0 + 1e-9)
         blueprint = self.blueprint(rrb)
         if sinks:
             self.rec.set_sinks(*sinks, default_blueprint=blueprint)
@@ -107,10 +111,8 @@ class Dashboard:
             web_port = options.web_port or 9090
             rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=server.uri)
             options.urls["web"] = f"http://{options.public_host}:{web_port}/?url={server.uri.replace('0.0.0.0', options.public_host)}"
-        self._unstable = bool(np.max(np.abs(np.linalg.eigvals(exp.Ad))) > 1.0 + 1e-9) if exp.n <= 2000 else False
         self._map_every = max(1, math.ceil((exp.n_rounds + 1) / MAP_FRAMES))
         self._static_logged = False
-        self._last = -1
         dst, src = np.nonzero(exp.Adj)  # edge src -> dst (dst receives from src)
         self._src, self._dst = src, dst
         self.log_static()  # also imports the archetypes before the rounds start
@@ -128,7 +130,7 @@ class Dashboard:
         def tabs(root: str, label: str):
             return rrb.Tabs(*[rrb.TimeSeriesView(origin=f"/{root}/{b}", name=f"{label}: {b}", time_ranges=whole) for b in order])
 
-        if self._has_relative():
+        if self._unstable:
             left = [tabs("relative_errors", "log10 relative error"), tabs("errors", "log10 error")]
         else:
             left = [tabs("errors", "log10 error")]
@@ -142,10 +144,6 @@ class Dashboard:
             rrb.TimePanel(state="collapsed"),
             collapse_panels=True,
         )
-
-    def _has_relative(self) -> bool:
-        A = self.exp.Ad
-        return A.shape[0] <= 2000 and bool(np.max(np.abs(np.linalg.eigvals(A))) > 1.0 + 1e-9)
 
     # ------------------------------------------------------------------ static data
     def log_static(self) -> None:
@@ -208,7 +206,7 @@ class Dashboard:
                     rel[~np.isfinite(rel)] = np.nan
                     rec.send_columns(f"relative_errors/{name}", indexes=times,
                                      columns=rr.Scalars.columns(scalars=rel.reshape(-1)).partition([N] * len(rows)))
-        for plot in self._plots():
+        for plot in plot_rows(exp):
             name, row, agents = plot
             rec.send_columns(f"state/{name}/truth", indexes=times, columns=rr.Scalars.columns(scalars=x @ row))
             for aid in agents:
@@ -222,12 +220,6 @@ class Dashboard:
             for i, aid in enumerate(exp.agent_ids):
                 for c, what in enumerate(("delivered", "dropped", "late", "rejected")):
                     rec.log(f"counters/agent{aid}/{what}", rr.Scalars(float(counters[i, c])))
-        self._last = int(rows[-1])
-
-    def _plots(self) -> list[tuple[str, np.ndarray, list[int]]]:
-        from .monitor import plot_rows
-
-        return plot_rows(self.exp)
 
     def _log_map(self, rows: np.ndarray, delivered: dict[int, np.ndarray] | None) -> None:
         """Agent positions and delivered / dropped links of the map frames in ``rows``, as

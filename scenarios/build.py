@@ -142,6 +142,18 @@ def _matrix(rows: Any, where: str, source: str, *, cols: int | None = None, nrow
     return M
 
 
+def explicit_AB(pl: Any, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """``[plant] A`` (square, required) and ``B`` (``n`` rows; none: no input), checked."""
+    if pl.A is None:
+        raise ScenarioError(f"plant.A: required for model = {pl.model!r}", source=source)
+    A = _matrix(pl.A, "plant.A", source)
+    if A.shape[0] != A.shape[1]:
+        raise ScenarioError(f"plant.A: expected a square matrix, got shape {A.shape}", source=source)
+    n = A.shape[0]
+    B = _matrix(pl.B, "plant.B", source, nrows=n) if pl.B is not None else np.zeros((n, 0))
+    return A, B
+
+
 def _plant(sc: Scenario, source: str) -> PlantModel:
     pl = sc.plant
     if pl.model not in ("three_inertia", "lti"):
@@ -156,13 +168,8 @@ def _plant(sc: Scenario, source: str) -> PlantModel:
             raise ScenarioError(f"plant.params: unknown parameter(s) {sorted(unknown)}; expected some of {sorted(allowed)}", source=source)
         base = three_inertia(**pl.params)
     else:
-        if pl.A is None:
-            raise ScenarioError("plant.A: required for model = 'lti'", source=source)
-        A = _matrix(pl.A, "plant.A", source)
-        if A.shape[0] != A.shape[1]:
-            raise ScenarioError(f"plant.A: expected a square matrix, got shape {A.shape}", source=source)
+        A, B = explicit_AB(pl, source)
         n = A.shape[0]
-        B = _matrix(pl.B, "plant.B", source, nrows=n) if pl.B is not None else np.zeros((n, 0))
         names = tuple(pl.state_names) if pl.state_names else tuple(f"x{i + 1}" for i in range(n))
         base = ContinuousLTI(A=A, B=B, banks=(), state_names=names)
     n = base.n

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Union
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, model_validator
 
 from .plugins import estimator_sections, plant_model_names
 from .types import Init, Matrix, Strict, UniformInit, Vector, ZeroInit, ValueInit  # noqa: F401
@@ -271,8 +271,3 @@ class Scenario(Strict):
     attacks: list[Attack] = Field(default_factory=list)
     output: OutputSection = Field(default_factory=OutputSection)
     expect: list[Expectation] = Field(default_factory=list)
-
-    @field_validator("expect")
-    @classmethod
-    def _labels(cls, v: list[Expectation]) -> list[Expectation]:
-        return v

@@ -698,9 +698,14 @@ class AgentProcess(Role):
         if j not in self.node.links:
             self.rejects.add(j, "neighbour")
             return
-        self.node.receive(j, m.stamp, m.arrays["x"])
-        if m.stamp >= self.last - 2 and len(self.arrived) < 4096:
-            self.arrived.setdefault(m.stamp, set()).add(j)
+        self._take(j, m.stamp, m.arrays["x"])
+
+    def _take(self, j: int, stamp: int, x: np.ndarray) -> None:
+        """Hand a decoded estimate of in-neighbour ``j`` to the node (its channel decides)
+        and note its arrival for the lockstep wait lists."""
+        self.node.receive(j, stamp, x)
+        if stamp >= self.last - 2 and len(self.arrived) < 4096:
+            self.arrived.setdefault(stamp, set()).add(j)
 
     def _handle_view(self, key: str, payload: bytes) -> None:
         """A Byzantine agent with a view hears every estimate of the run and the done
@@ -741,9 +746,7 @@ class AgentProcess(Role):
         if j not in self.node.links:
             self.rejects.add(j, "neighbour")
             return
-        self.node.receive(j, m.stamp, m.arrays["x"])
-        if m.stamp >= self.last - 2 and len(self.arrived) < 4096:
-            self.arrived.setdefault(m.stamp, set()).add(j)
+        self._take(j, m.stamp, m.arrays["x"])
 
     def _release_held(self, now: float) -> bool:
         """Lockstep, phase two of round k for an omniscient adversary: publish once the

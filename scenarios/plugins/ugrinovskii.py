@@ -299,7 +299,7 @@ def _plant(sc: "Scenario", source: str, model: str) -> PlantModel:
     if pl.input.kind != "zero":
         raise ScenarioError(f"plant.input: model {model!r} has no known input (its B is the disturbance matrix of x' = A x + B w)",
                             source=source)
-    from ..build import _matrix
+    from ..build import _matrix, explicit_AB
 
     if model == "ugrinovskii_example":
         if pl.A is not None or pl.B is not None:
@@ -314,13 +314,8 @@ def _plant(sc: "Scenario", source: str, model: str) -> PlantModel:
         eye = np.eye(n)
         banks = tuple(eye[[i, (i + 1) % n]] for i in range(n))
     else:
-        if pl.A is None:
-            raise ScenarioError("plant.A: required for model = 'hinf'", source=source)
-        A = _matrix(pl.A, "plant.A", source)
-        if A.shape[0] != A.shape[1]:
-            raise ScenarioError(f"plant.A: expected a square matrix, got shape {A.shape}", source=source)
+        A, B = explicit_AB(pl, source)
         n = A.shape[0]
-        B = _matrix(pl.B, "plant.B", source, nrows=n) if pl.B is not None else np.zeros((n, 0))
         if sc.sensors is None:
             raise ScenarioError("sensors: required for model = 'hinf' (one [[sensors]] table per node's C_i)", source=source)
         banks = tuple(_matrix(s.C, f"sensors[{k}].C", source, cols=n) for k, s in enumerate(sc.sensors))
@@ -360,7 +355,7 @@ _MEMO_SIZE = 8
 
 def _matrix_opt(rows: Matrix | None, default: np.ndarray, where: str, source: str, *, nrows: int | None = None,
                 cols: int | None = None) -> np.ndarray:
-    from ..build import _matrix
+    from ..build import _matrix, explicit_AB
 
     if rows is None:
         return default
