@@ -161,11 +161,15 @@ class Keys:
         The run id; validated by :func:`validate_run_id`.
     """
 
-    __slots__ = ("run", "_root")
+    __slots__ = ("run", "_root", "_parsed")
+
+    #: parsed keys remembered per run (a team uses a few keys per member, over and over)
+    CACHE_SIZE = 4096
 
     def __init__(self, run: str) -> None:
         self.run = validate_run_id(run)
         self._root = f"{PREFIX}/{run}"
+        self._parsed: dict[str, ParsedKey] = {}
 
     def __repr__(self) -> str:
         return f"Keys({self.run!r})"
@@ -236,10 +240,19 @@ class Keys:
     # -- parsing
 
     def parse(self, key: str) -> ParsedKey:
-        """Parse a received key of this run (a key of another run is rejected)."""
+        """Parse a received key of this run (a key of another run is rejected).
+
+        Valid keys are remembered (at most :attr:`CACHE_SIZE`, then the cache starts
+        afresh): :class:`ParsedKey` is immutable and a key always parses the same way."""
+        parsed = self._parsed.get(key)
+        if parsed is not None:
+            return parsed
         parsed = parse_key(key)
         if parsed.run != self.run:
             raise MessageError(f"key {key!r:.120} belongs to run {parsed.run!r}, not {self.run!r}", reason="key")
+        if len(self._parsed) >= self.CACHE_SIZE:
+            self._parsed.clear()
+        self._parsed[key] = parsed
         return parsed
 
 

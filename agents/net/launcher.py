@@ -110,6 +110,10 @@ def _open(opts: Any) -> Any:
         return open_session(SessionOptions(mode="peer", listen=(tcp_endpoint(0),), connect=opts.connect))
 
 
+#: niceness increment of the monitor process (0: none)
+MONITOR_NICE = 10
+
+
 async def _role_main(spec: ChildSpec, exp: Any) -> Any:
     from transport.keys import Keys
     from transport.zenoh_bus import ZenohBus
@@ -132,6 +136,12 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
             task.cancel()
 
         watcher = asyncio.ensure_future(watch())
+    if spec.role == "monitor" and MONITOR_NICE:
+        # The monitor only records: on a machine shared with the team it yields the CPU
+        # to the plant and agents, whose rounds it must not slow down (lockstep bounds
+        # its lag by the plant's MAX_AHEAD acknowledgement window).
+        with contextlib.suppress(OSError):
+            os.nice(MONITOR_NICE)
     session = await asyncio.to_thread(_open, spec.session)
     log.debug("session open")
     bus = None
