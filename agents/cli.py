@@ -280,3 +280,4 @@ if __name__ == "__main__":
 from . import cli_net  # noqa: E402,F401
 from . import cli_report  # noqa: E402,F401
 from . import cli_sweep  # noqa: E402,F401
+from . import cli_deploy  # noqa: E402,F401

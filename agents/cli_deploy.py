@@ -1,0 +1,71 @@
+"""The deployment commands of ``rse``: ``router`` (a Zenoh router) and ``certs`` (TLS identities).
+
+Registered on the click group of :mod:`agents.cli` (imported at its end). Exit statuses
+as there: 0 success (``rse router`` also after Ctrl-C / SIGTERM), 1 failure, 2 bad input.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from estimation.errors import ScenarioError
+
+from .cli import _handle_errors, cli
+
+
+def secure_files(directory: Path, identity: str):
+    """:class:`transport.secure.TlsFiles` of ``identity`` in ``directory``; a missing or
+    unreadable file is a :class:`ScenarioError` (exit status 2) naming it."""
+    from transport.secure import tls_files
+
+    try:
+        return tls_files(directory, identity)
+    except ValueError as exc:
+        raise ScenarioError(str(exc)) from None
+
+
+@cli.command()
+@click.option("--listen", multiple=True, metavar="tcp/HOST:PORT",
+              help="Endpoint to listen on (repeatable; port 0: a free port). Default: the --config file's, "
+                   "else tcp/0.0.0.0:7447 (every interface, as a container needs; tcp/127.0.0.1:7447 for this host only).")
+@click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="A Zenoh configuration file (JSON5) loaded first; mode, listen, scouting and --secure's settings go on top.")
+@click.option("--secure", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
+              help="TLS with mutual authentication and access control, certificates from `rse certs DIR` "
+                   "(ca.pem, router.pem, router.key; the agents admitted are those of DIR/agent-I.pem).")
+@click.option("--run-id", default=None, help="With --secure: admit this run only (default: any run).")
+@_handle_errors
+def router(listen: tuple[str, ...], config_file: Path | None, secure: Path | None, run_id: str | None) -> None:
+    """Run a Zenoh router in this process until Ctrl-C / SIGTERM.
+
+    Plant, monitor and agents on any host then join as its clients:
+    `rse agent --id 3 SCENARIO --run-id RUN --client --connect tcp/ROUTER_HOST:7447`.
+    Scouting is off (clients name the router). Prints the endpoints it listens on.
+    """
+    from .net.router import router_config, serve
+
+    files = secure_files(secure, "router") if secure is not None else None
+    if run_id is not None and files is None:
+        raise ScenarioError("--run-id only applies with --secure (it restricts the access control to one run)")
+    conf, eps = router_config(listen, config_file=config_file, secure=files, run_id=run_id or "*")
+    if files is not None:
+        from transport.secure import agent_ids_in
+
+        ids = agent_ids_in(files.directory)
+        click.echo(f"rse router: TLS with mutual authentication (CA {files.ca}); access control for plant, monitor "
+                   f"and {len(ids)} agent(s): {_ranges(ids)}")
+    serve(conf, eps, say=click.echo)
+    click.echo("rse router: stopped")
+
+
+def _ranges(ids: list[int]) -> str:
+    """``[1, 2, 3, 5]`` -> ``"1-3, 5"``."""
+    spans: list[list[int]] = []
+    for i in ids:
+        if spans and spans[-1][1] == i - 1:
+            spans[-1][1] = i
+        else:
+            spans.append([i, i])
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in spans)

@@ -1,0 +1,67 @@
+"""``rse router``: a Zenoh router in a Python process; clients of it talk through it."""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+
+import pytest
+
+from tests.deploy.conftest import rse_cmd
+
+pytestmark = pytest.mark.multiprocess
+
+
+def test_router_routes_between_clients_and_stops_on_sigint_within_2_s(procs):
+    from transport.zenoh_session import SessionOptions, close_session, open_session
+
+    p, ep = procs.router("--listen", "tcp/127.0.0.1:0")
+    assert ep.startswith("tcp/127.0.0.1:") and not ep.endswith(":0")
+    a = b = None
+    try:
+        a = open_session(SessionOptions.client([ep]))
+        b = open_session(SessionOptions.client([ep]))
+        got, seen = [], threading.Event()
+
+        def on(sample):
+            got.append((str(sample.key_expr), sample.payload.to_bytes()))
+            seen.set()
+
+        b.declare_subscriber("rse/t/agent/*/est", on)
+        end = time.monotonic() + 5
+        while not seen.is_set() and time.monotonic() < end:  # until the declaration reached the router
+            a.put("rse/t/agent/1/est", b"hello")
+            seen.wait(0.1)
+        assert got and got[0] == ("rse/t/agent/1/est", b"hello")
+    finally:
+        close_session(a)
+        close_session(b)
+    t0 = time.monotonic()
+    p.send_signal(signal.SIGINT)
+    so, se = p.communicate(timeout=10)
+    assert time.monotonic() - t0 < 2.0
+    assert p.returncode == 0, se
+    assert "rse router: stopped" in so and "Traceback" not in se
+
+
+def test_router_bad_input_is_one_line_exit_2(procs, tmp_path):
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ listen: ")
+    for args, words in ((["--listen", "nowhere"], "--listen"), (["--config", str(bad)], "not a valid Zenoh configuration"),
+                        (["--config", str(tmp_path / "none.json5")], "no such file"),
+                        (["--secure", str(tmp_path / "nocerts")], "no such directory")):
+        p = procs.start(rse_cmd("router", *args))
+        so, se = p.communicate(timeout=30)
+        assert p.returncode == 2, (args, se)
+        assert words in se and "Traceback" not in se and len(se.strip().splitlines()) == 1, se
+
+
+def test_router_config_file_listen_endpoints_are_used(procs, tmp_path):
+    conf = tmp_path / "router.json5"
+    conf.write_text('{ // a Zenoh config file\n listen: { endpoints: ["tcp/127.0.0.1:0"] }, mode: "peer" }\n')
+    p, ep = procs.router("--config", str(conf))
+    assert ep.startswith("tcp/127.0.0.1:") and not ep.endswith(":0")
+    p.terminate()
+    so, se = p.communicate(timeout=10)
+    assert p.returncode == 0, se
