@@ -279,10 +279,35 @@ def agent(agent_id: int, **kw: Any) -> None:
 @_role_options
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Where to write metrics and summary.")
 @click.option("--save-estimates", is_flag=True, help="Also write estimates.npy and truth.npy.")
+@rerun_options
 @_handle_errors
-def monitor(out: Path, save_estimates: bool, **kw: Any) -> None:
-    """Run the monitor of SCENARIO in this process: writes metrics.parquet and summary.json to --out."""
-    _run_single(_role_spec("monitor", "monitor", out_dir=str(out), save_estimates=save_estimates, **kw))
+def monitor(out: Path, save_estimates: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
+            web_port: int | None, grpc_port: int | None, **kw: Any) -> None:
+    """Run the monitor of SCENARIO in this process: writes metrics.parquet, summary.json and
+    the Rerun recording recording.rrd (recording id = run id) to --out.
+
+    With --serve-web it serves the web viewer (every interface: --web-port, default 9090, and
+    the gRPC endpoint the page reads, --grpc-port, default 9876), prints the URL and keeps
+    serving after the run until Ctrl-C / SIGTERM.
+    """
+    dopts = dashboard_options(out, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
+    _run_single(_role_spec("monitor", "monitor", out_dir=str(out), save_estimates=save_estimates, dashboard=dopts,
+                           conn=_UrlPrinter() if dopts is not None else None, **kw))
+
+
+class _UrlPrinter:
+    """The monitor's progress channel when it runs alone: prints the dashboard's URLs."""
+
+    def send(self, item: tuple[str, Any]) -> None:
+        from .console import out as console
+
+        kind, data = item
+        if kind == "urls":
+            for what, url in data.items():
+                console.print(f"rerun {what}: {url}", soft_wrap=True)
+        elif kind == "serving" and data.get("web"):
+            console.print(f"the run is finished; still serving the recording at {data['web']} (Ctrl-C to stop)",
+                          soft_wrap=True)
 
 
 # ----------------------------------------------------------------------- bench
