@@ -1,0 +1,230 @@
+"""``python -m benchmarks``: run the benchmark suite, print one table, write the figures as JSON.
+
+Usage::
+
+    python -m benchmarks [--quick] [--only simulate,run,memory,sweep] [--json FILE] [--compare OLD.json]
+    python -m benchmarks --load NEW.json [--compare OLD.json]     # print saved figures, no run
+
+Run it from a source checkout on a quiet machine (every other process slows the
+figures down; the load average at the start and the end is in the JSON). ``--quick`` is
+the smoke size of the tests (16 agents, 2 agent processes, a tiny sweep: a few seconds).
+
+Exit status: 0 success; 1 a benchmark failed (the others' figures are still printed and
+written); 2 bad input (options, a ``--compare`` / ``--load`` file); 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import os
+
+# As the rse command does: one BLAS thread per process (tiny matrices, many processes).
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import sys  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from datetime import datetime, timezone  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any, Callable  # noqa: E402
+
+import click  # noqa: E402
+from rich.console import Console  # noqa: E402
+
+from .report import (BenchmarkError, Figure, git_info, machine_info, read_document, result_document,  # noqa: E402
+                     table, write_document)
+
+SECTIONS = ("simulate", "run", "memory", "sweep")
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+out = Console(highlight=False)
+err = Console(stderr=True, highlight=False)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Sizes of one suite run.
+
+    Parameters
+    ----------
+    sim_rounds : simulator team size (agents) -> ``run.rounds``
+    sim_repeats : timed simulator runs per size (the best is kept)
+    run_processes : agent process counts of ``rse run`` (keys of :data:`benchmarks.run_bench.TEAMS`)
+    run_rounds : ``run.rounds`` of each ``rse run`` (and the skeleton's rounds)
+    sweep_drop_ps, sweep_seeds, sweep_rounds, sweep_jobs : the sweep's grid, seeds per
+        point, ``run.rounds`` and worker processes
+    """
+
+    sim_rounds: dict[int, int]
+    sim_repeats: int
+    run_processes: tuple[int, ...]
+    run_rounds: int
+    sweep_drop_ps: tuple[float, ...]
+    sweep_seeds: int
+    sweep_rounds: int
+    sweep_jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
+
+    def settings(self) -> dict[str, Any]:
+        return {"sim_rounds": {str(k): v for k, v in self.sim_rounds.items()}, "sim_repeats": self.sim_repeats,
+                "run_processes": list(self.run_processes), "run_rounds": self.run_rounds,
+                "sweep_drop_ps": list(self.sweep_drop_ps), "sweep_seeds": self.sweep_seeds,
+                "sweep_rounds": self.sweep_rounds, "sweep_jobs": self.sweep_jobs}
+
+
+FULL = Plan(sim_rounds={16: 200, 64: 100, 256: 40, 1024: 20}, sim_repeats=3, run_processes=(2, 4, 8, 16, 32),
+            run_rounds=300, sweep_drop_ps=(0.1, 0.2, 0.3, 0.4), sweep_seeds=2, sweep_rounds=100)
+QUICK = Plan(sim_rounds={16: 10}, sim_repeats=2, run_processes=(2,), run_rounds=20, sweep_drop_ps=(0.1, 0.3),
+             sweep_seeds=1, sweep_rounds=10, sweep_jobs=min(2, os.cpu_count() or 1))
+
+
+@dataclass
+class Step:
+    section: str
+    label: str
+    run: Callable[[], list[Figure]]
+
+
+def steps(plan: Plan, sections: list[str]) -> list[Step]:
+    """The measurements of ``sections`` under ``plan``, in the order they run."""
+    from . import run_bench, sim_bench, sweep_bench
+
+    todo: list[Step] = []
+    want_sim, want_mem = "simulate" in sections, "memory" in sections
+    if want_sim or want_mem:
+        ref: dict[str, float] = {}
+
+        def sim_step(agents: int, rounds: int) -> Callable[[], list[Figure]]:
+            def go() -> list[Figure]:
+                m = sim_bench.measure_team_fresh(agents, rounds, plan.sim_repeats if want_sim else 0)
+                figs: list[Figure] = []
+                if want_sim:
+                    figs += sim_bench.simulate_figures(m, plan.sim_repeats, ref.get("ns"))
+                    if agents == 16:
+                        ref["ns"] = next(f.value for f in figs if f.name == "ns_per_fused_value")
+                if want_mem:
+                    figs += sim_bench.memory_figures(m)
+                return figs
+            return go
+
+        name = "simulate" if want_sim else "memory"
+        for agents, rounds in sorted(plan.sim_rounds.items()):
+            todo.append(Step(name, f"{name}: simulator, {agents} agents, {rounds + 1} rounds", sim_step(agents, rounds)))
+    if "run" in sections:
+        for procs in plan.run_processes:
+            todo.append(Step("run", f"run: rse run and Zenoh skeleton, {procs} agent processes, {plan.run_rounds} rounds",
+                             lambda procs=procs: run_bench.run_figures(run_bench.measure_run(procs, plan.run_rounds))))
+    if "sweep" in sections:
+        runs = len(plan.sweep_drop_ps) * plan.sweep_seeds
+        todo.append(Step("sweep", f"sweep: {runs} runs, {plan.sweep_jobs} jobs",
+                         lambda: sweep_bench.sweep_figures(sweep_bench.measure_sweep(
+                             list(plan.sweep_drop_ps), plan.sweep_seeds, plan.sweep_rounds, plan.sweep_jobs))))
+    return todo
+
+
+#: the table's order of the sections
+DISPLAY_ORDER = ("simulate", "memory", "run", "sweep")
+
+
+def order_figures(figs: list[Figure]) -> list[Figure]:
+    """Sections in :data:`DISPLAY_ORDER`, measurement order within a section."""
+    return sorted(figs, key=lambda f: DISPLAY_ORDER.index(f.section))
+
+
+def run_suite(plan: Plan, sections: list[str], *, progress: bool = True) -> tuple[list[Figure], list[str]]:
+    """Run every step; returns the figures and one message per failed step."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    todo = steps(plan, sections)
+    figs: list[Figure] = []
+    errors: list[str] = []
+    bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                   console=err, disable=not progress)
+    with bar:
+        task = bar.add_task("benchmarks", total=len(todo))
+        for step in todo:
+            bar.update(task, description=step.label)
+            try:
+                figs += step.run()
+            except BenchmarkError as exc:
+                errors.append(f"{step.section}: {exc}")
+            except Exception as exc:  # a failed step must not lose the others' figures
+                if os.environ.get("RSE_DEBUG"):
+                    raise
+                errors.append(f"{step.section}: {step.label}: {type(exc).__name__}: {exc}")
+            bar.advance(task)
+        bar.update(task, description="benchmarks done")
+    return order_figures(figs), errors
+
+
+def parse_sections(value: str | None) -> list[str]:
+    if not value:
+        return list(SECTIONS)
+    names = [v.strip() for v in value.split(",") if v.strip()]
+    bad = [v for v in names if v not in SECTIONS]
+    if bad or not names:
+        raise click.BadParameter(f"unknown section(s) {', '.join(bad) or '(none)'}; choose from {','.join(SECTIONS)}")
+    return [s for s in SECTIONS if s in names]
+
+
+def default_json_path(git: dict[str, Any]) -> Path:
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    return Path("runs") / "benchmarks" / f"{stamp}-{(git.get('commit') or 'nogit')[:10]}.json"
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.option("--quick", is_flag=True, help="Smoke sizes: 16 agents, 2 agent processes, a 2-run sweep (seconds).")
+@click.option("--only", "only", default=None, metavar="SECTIONS",
+              help=f"Comma-separated sections to run (default: all): {','.join(SECTIONS)}.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Where to write the figures (default: runs/benchmarks/STAMP-COMMIT.json).")
+@click.option("--compare", "compare", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="A result file of an earlier run: print its value and new / old per figure.")
+@click.option("--load", "load", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Print the figures of a saved result file instead of running (with --compare: compare them).")
+@click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
+def cli(quick: bool, only: str | None, json_path: Path | None, compare: Path | None, load: Path | None,
+        progress: bool) -> None:
+    """Benchmark the simulator, rse run, memory and rse sweep; print one table and write JSON."""
+    try:
+        sections = parse_sections(only)
+    except click.BadParameter as exc:
+        exc.param_hint = "'--only'"
+        raise
+    try:
+        old = read_document(compare) if compare is not None else None
+        if load is not None:
+            if quick or only or json_path:
+                raise BenchmarkError("--load prints a saved file: it takes no --quick, --only or --json")
+            out.print(table(read_document(load), old))
+            return
+    except BenchmarkError as exc:
+        err.print(f"[red]error:[/red] {exc}", soft_wrap=True)
+        sys.exit(EXIT_BAD_INPUT)
+    plan = QUICK if quick else FULL
+    machine, git = machine_info(), git_info()
+    cores, load0 = machine.get("cores_logical") or 1, (machine.get("loadavg_start") or [0.0])[0]
+    if load0 > 0.5 * cores:
+        err.print(f"[yellow]warning:[/yellow] the machine is busy (load average {load0:.1f} on {cores} cores): "
+                  "the figures will be low", soft_wrap=True)
+    try:
+        figs, errors = run_suite(plan, sections, progress=progress)
+    except KeyboardInterrupt:
+        err.print("[red]error:[/red] interrupted")
+        sys.exit(EXIT_INTERRUPTED)
+    doc = result_document(figs, machine=machine, git=git, quick=quick, sections=sections, errors=errors)
+    doc["settings"] = plan.settings()
+    path = json_path or default_json_path(git)
+    try:
+        write_document(doc, path)
+    except OSError as exc:
+        err.print(f"[red]error:[/red] cannot write {path}: {exc.strerror or exc}", soft_wrap=True)
+        sys.exit(EXIT_FAILED)
+    out.print(table(doc, old))
+    out.print(f"figures: {path}", soft_wrap=True)
+    for e in errors:
+        err.print(f"[red]error:[/red] {e}", soft_wrap=True)
+    if errors:
+        sys.exit(EXIT_FAILED)
+
+
+def main() -> None:
+    cli(prog_name="python -m benchmarks")
