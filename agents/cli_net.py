@@ -86,14 +86,19 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
 @_run_options
 @click.option("--connect", multiple=True, metavar="tcp/HOST:PORT",
               help="Zenoh router(s): every process is a client of them (multi-host). Default: peers on loopback.")
+@click.option("--router", "with_router", is_flag=True,
+              help="Start a Zenoh router on a free loopback port; every process is its client (as across hosts).")
+@click.option("--secure", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
+              help="Mutual TLS and the router's access control, certificates from `rse certs DIR` (implies --router "
+                   "unless --connect names a secure router).")
 @click.option("--run-id", default=None, help="Run id in every key expression (default: NAME-RANDOM).")
 @click.option("--save-estimates", is_flag=True, help="Also write estimates.npy and truth.npy (every agent's estimate per round).")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
 @rerun_options
 @_handle_errors
 def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, mode: str, rate: float | None,
-        deadline: float, startup_timeout: float, warmup: float, connect: tuple[str, ...], run_id: str | None,
-        save_estimates: bool, progress: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
+        deadline: float, startup_timeout: float, warmup: float, connect: tuple[str, ...], with_router: bool,
+        secure: Path | None, run_id: str | None, save_estimates: bool, progress: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
         web_port: int | None, grpc_port: int | None) -> None:
     """Run SCENARIO as a team of processes over Zenoh: plant, monitor, one process per agent.
 
@@ -111,6 +116,8 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
 
     cfg = _config(mode, rate, deadline, startup_timeout, save_estimates, warmup)
     eps = _endpoints(connect)
+    if with_router and eps:
+        raise ScenarioError("--router starts a router for the team; --connect names one already running: give one of them")
     if run_id is not None:
         try:
             validate_run_id(run_id)
@@ -144,7 +151,8 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
         wait_while_serving(served.get("urls", {}).get("web", ""))
 
     res = launch(scenario, overrides, seed, run_dir, cfg, connect=eps, progress=progress, run_id=run_id, exp=exp,
-                 frozen=frozen, dashboard=dopts, show_urls=show_urls, while_serving=while_serving)
+                 frozen=frozen, dashboard=dopts, show_urls=show_urls, while_serving=while_serving, router=with_router,
+                 secure=secure)
     if res.status == EXIT_INTERRUPTED:
         raise KeyboardInterrupt
     if res.status != 0:
@@ -164,6 +172,11 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
 
 def _role_options(fn: Callable) -> Callable:
     fn = click.option("--verbose", "-v", is_flag=True, help="Log joins, leaves and rounds.")(fn)
+    fn = click.option("--identity", default=None, metavar="NAME",
+                      help="With --secure: whose certificate to present (default: plant, monitor or agent-ID).")(fn)
+    fn = click.option("--secure", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
+                      help="Mutual TLS with DIR/ca.pem, DIR/IDENTITY.pem and .key (`rse certs`); a client of a secure "
+                           "router (tcp/ endpoints are taken as tls/). Default: the team file's.")(fn)
     fn = click.option("--listen", default=None, metavar="tcp/HOST:PORT",
                       help="Peer mode: endpoint to listen on (default: the team file's, or a free loopback port).")(fn)
     fn = click.option("--connect", multiple=True, metavar="tcp/HOST:PORT",
@@ -183,7 +196,7 @@ def _role_options(fn: Callable) -> Callable:
 def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[str, ...], seed: int | None,
                team: Path | None, run_id: str | None, client: bool, connect: tuple[str, ...], listen: str | None,
                mode: str, rate: float | None, deadline: float, startup_timeout: float, warmup: float, verbose: bool,
-               _validate: bool = True, **extra: Any):
+               secure: Path | None = None, identity: str | None = None, _validate: bool = True, **extra: Any):
     from transport.keys import validate_run_id
     from transport.zenoh_session import SessionOptions, normalize_endpoint, tcp_endpoint
 
@@ -211,12 +224,33 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
     except ValueError as exc:
         raise ScenarioError(f"--run-id: {exc}") from None
     eps = _endpoints(connect)
+    tls = None
+    secure = secure or (Path(data["secure"]) if data.get("secure") else None)
+    if secure is not None:
+        from transport.secure import identity_for, validate_identity
+
+        from .cli_deploy import secure_files
+
+        try:
+            me = validate_identity(identity) if identity else identity_for(role, extra.get("agent_id"))
+        except ValueError as exc:
+            raise ScenarioError(f"--identity: {exc}") from None
+        tls = secure_files(secure, me)
+        if not (client or data):
+            raise ScenarioError("--secure needs --client --connect tls/ROUTER:PORT (a secure team's processes are "
+                                "clients of its router), or --team")
+        if listen is not None:
+            raise ScenarioError("--secure: a client of the router does not listen; leave out --listen")
+    elif identity is not None:
+        raise ScenarioError("--identity only applies with --secure")
     if client:
         if not eps:
             raise ScenarioError("--client needs --connect tcp/HOST:PORT (a Zenoh router)")
-        session = SessionOptions.client(eps)
+        session = _client_options(eps, tls)
     elif data and not eps and listen is None:
-        session = session_for(data, label)
+        session = session_for(data, label, tls=tls)
+    elif tls is not None:
+        session = _client_options(eps, tls)  # a secure team file: --connect names its router
     else:
         try:
             lst = normalize_endpoint(listen) if listen else (data.get("endpoints", {}).get(label) or tcp_endpoint(0))
@@ -230,6 +264,15 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
         load_experiment(scenario, overrides, seed)
     return ChildSpec(role=role, scenario=str(scenario), overrides=tuple(overrides), seed=seed, run_id=run_id, cfg=cfg,
                      session=session, log_level=logging.INFO if verbose else logging.WARNING, **extra)
+
+
+def _client_options(eps: tuple[str, ...], tls: Any) -> Any:
+    from transport.zenoh_session import SessionOptions
+
+    try:
+        return SessionOptions.client(eps, tls=tls)
+    except ValueError as exc:
+        raise ScenarioError(f"--connect: {exc}") from None
 
 
 def _run_single(spec: Any) -> None:

@@ -32,7 +32,7 @@ import re
 import socket
 import threading
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import zenoh
 
@@ -113,19 +113,24 @@ class SessionOptions:
         Endpoints of peers or routers to connect to (required for a client).
     multicast_scouting : bool
         Off by default: teams on one machine must not discover each other.
+    tls : transport.secure.TlsFiles, optional
+        This process's TLS identity (CA, certificate, key): mutual TLS on every link;
+        ``tcp/`` endpoints become ``tls/``, other protocols are refused.
     """
 
     mode: str = "peer"
     listen: tuple[str, ...] | None = None
     connect: tuple[str, ...] = field(default_factory=tuple)
     multicast_scouting: bool = False
+    tls: Any = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {sorted(MODES)}, got {self.mode!r}")
+        fix = (lambda e: e) if self.tls is None else _secure_endpoint
         if self.listen is not None:
-            object.__setattr__(self, "listen", tuple(normalize_endpoint(e) for e in _seq(self.listen, "listen")))
-        object.__setattr__(self, "connect", tuple(normalize_endpoint(e) for e in _seq(self.connect, "connect")))
+            object.__setattr__(self, "listen", tuple(fix(normalize_endpoint(e)) for e in _seq(self.listen, "listen")))
+        object.__setattr__(self, "connect", tuple(fix(normalize_endpoint(e)) for e in _seq(self.connect, "connect")))
         if self.mode == "client" and not self.connect:
             raise ValueError("client mode needs at least one router endpoint in connect (e.g. tcp/HOST:7447)")
         if self.mode == "client" and self.listen:
@@ -148,15 +153,18 @@ class SessionOptions:
         return cls(mode="peer", listen=listen, connect=eps)
 
     @classmethod
-    def client(cls, connect: Iterable[str]) -> "SessionOptions":
-        """Client of the router(s) at ``connect`` (``tcp/HOST:PORT``, or ``HOST:PORT``)."""
-        return cls(mode="client", listen=(), connect=tuple(connect))
+    def client(cls, connect: Iterable[str], tls: Any = None) -> "SessionOptions":
+        """Client of the router(s) at ``connect`` (``tcp/HOST:PORT``, or ``HOST:PORT``),
+        over mutual TLS with the identity ``tls`` if given."""
+        return cls(mode="client", listen=(), connect=tuple(connect), tls=tls)
 
     def effective_listen(self) -> tuple[str, ...]:
         """The listen endpoints actually configured (see ``listen``)."""
         if self.listen is not None:
             return self.listen
-        return () if self.mode == "client" else (tcp_endpoint(0),)
+        if self.mode == "client":
+            return ()
+        return (_secure_endpoint(tcp_endpoint(0)),) if self.tls is not None else (tcp_endpoint(0),)
 
     def to_config(self) -> zenoh.Config:
         """The ``zenoh.Config`` for these options (see :func:`make_config`)."""
@@ -165,7 +173,14 @@ class SessionOptions:
             listen=self.effective_listen(),
             connect=self.connect,
             multicast_scouting=self.multicast_scouting,
+            tls=self.tls,
         )
+
+
+def _secure_endpoint(endpoint: str) -> str:
+    from transport.secure import secure_endpoint
+
+    return secure_endpoint(endpoint)
 
 
 def _seq(value: object, what: str) -> Sequence[str]:
@@ -180,12 +195,14 @@ def make_config(
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     multicast_scouting: bool = False,
+    tls: Any = None,
 ) -> zenoh.Config:
     """Build a ``zenoh.Config`` with ``zenoh.Config()`` + ``insert_json5``.
 
     Sets ``mode``, ``listen/endpoints``, ``connect/endpoints`` and
-    ``scouting/multicast/enabled`` (the keys of Zenoh's ``DEFAULT_CONFIG.json5``);
-    everything else keeps Zenoh's defaults. Values are written with ``json.dumps`` (JSON
+    ``scouting/multicast/enabled`` (the keys of Zenoh's ``DEFAULT_CONFIG.json5``), and
+    with ``tls`` (a :class:`transport.secure.TlsFiles`) the ``transport/link/tls`` keys of
+    mutual TLS (:func:`transport.secure.tls_settings`); everything else keeps Zenoh's defaults. Values are written with ``json.dumps`` (JSON
     is JSON5), so no endpoint string can inject configuration.
     """
     if mode not in MODES:
@@ -198,6 +215,11 @@ def make_config(
         conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
         conf.insert_json5("listen/endpoints", json.dumps(listen))
         conf.insert_json5("connect/endpoints", json.dumps(connect))
+        if tls is not None:
+            from transport.secure import tls_settings
+
+            for key, value in tls_settings(tls).items():
+                conf.insert_json5(key, json.dumps(value))
     except Exception as exc:  # zenoh.ZError: an endpoint Zenoh itself does not accept
         raise ValueError(f"invalid Zenoh configuration: {exc}") from exc
     return conf
@@ -228,6 +250,8 @@ def open_session(options: SessionOptions | zenoh.Config | None = None) -> zenoh.
     if isinstance(options, SessionOptions):
         config = options.to_config()
         where = f"mode={options.mode} listen={list(options.effective_listen())} connect={list(options.connect)}"
+        if options.tls is not None:
+            where += f" tls identity {options.tls.identity}"
     elif isinstance(options, zenoh.Config):
         config, where = options, "the given zenoh.Config"
     else:

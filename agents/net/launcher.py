@@ -7,6 +7,12 @@ opens no Zenoh session itself: every session lives in a child (:func:`run_role`)
 listens on its port and connects to every other member's port (Zenoh peers on loopback,
 multicast scouting off), or is a client of the routers given with ``--connect``.
 
+With ``router=True`` (``rse run --router``) it first starts a Zenoh router as a child
+process (:func:`agents.net.router.router_entry`) on a free loopback port and every
+process is a client of it; with ``secure`` (``rse run --secure DIR``) that router speaks
+mutual TLS and enforces the access control of :mod:`transport.secure`, and each process
+presents its own certificate from ``DIR``.
+
 It writes ``team.json`` to the run directory (run id, endpoints, process ids) so that a
 killed agent can be restarted by hand against the running team::
 
@@ -273,12 +279,15 @@ class Team:
     seed: int | None
     cfg: RunConfig
     pids: dict[str, int] = field(default_factory=dict)
+    router: str | None = None  # the endpoint of the router started by rse run --router
+    secure: str | None = None  # the certificate directory of rse run --secure
 
     def as_dict(self) -> dict[str, Any]:
         return {
             "run_id": self.run_id, "endpoints": self.endpoints, "transport": self.mode, "connect": list(self.connect),
             "scenario": self.scenario, "overrides": list(self.overrides), "seed": self.seed,
             "mode": self.cfg.mode, "rate": self.cfg.rate, "deadline": self.cfg.deadline, "pids": self.pids,
+            "router": self.router, "secure": self.secure,
         }
 
 
@@ -298,12 +307,13 @@ def load_team(path: Path) -> dict[str, Any]:
     return data
 
 
-def session_for(team: dict[str, Any], me: str, *, connect: tuple[str, ...] = ()) -> Any:
-    """Session options of process ``me`` (e.g. ``"agent 3"``) joining ``team``."""
+def session_for(team: dict[str, Any], me: str, *, connect: tuple[str, ...] = (), tls: Any = None) -> Any:
+    """Session options of process ``me`` (e.g. ``"agent 3"``) joining ``team``; ``tls``
+    (a :class:`transport.secure.TlsFiles`) for a secure team."""
     from transport.zenoh_session import SessionOptions, tcp_endpoint
 
-    if connect or team.get("transport") == "client":
-        return SessionOptions.client(connect or tuple(team.get("connect", ())))
+    if connect or team.get("transport") == "client" or tls is not None:
+        return SessionOptions.client(connect or tuple(team.get("connect", ())), tls=tls)
     eps = team["endpoints"]
     listen = eps.get(me, tcp_endpoint(0))
     return SessionOptions(mode="peer", listen=(listen,), connect=tuple(v for k, v in eps.items() if k != me))
@@ -357,8 +367,14 @@ def launch(
     dashboard: Any = None,
     show_urls: Any = None,
     while_serving: Any = None,
+    router: bool = False,
+    secure: Path | None = None,
 ) -> LaunchResult:
     """Start and supervise the team; returns when every child has exited.
+
+    router : start a Zenoh router child on a free loopback port; every process is its client
+    secure : a directory of ``rse certs``: mutual TLS, each process with its own identity,
+        all clients of a router (the one at ``connect``, else one started as with ``router``)
 
     dashboard : the monitor's :class:`agents.dashboard.DashboardOptions` (None: no Rerun output)
     show_urls : called with the dashboard's URLs once the monitor serves them
@@ -377,18 +393,34 @@ def launch(
     run_id = run_id or safe_run_id(exp.scenario.run.name)
     run_dir.mkdir(parents=True, exist_ok=True)
     names = ["plant", "monitor"] + [f"agent {a}" for a in exp.agent_ids]
+    tls: dict[str, Any] = {nm: None for nm in names}
+    if secure is not None:
+        tls = {nm: _tls_files(secure, nm) for nm in ["router", *names] if nm != "router" or not connect}
+        router = not connect
+    router_ep = None
+    if router:
+        if connect:
+            raise ScenarioError("--router starts a router for the team: leave out --connect (or use --connect alone)")
+        from transport.secure import secure_endpoint
+        from transport.zenoh_session import free_tcp_port
+
+        router_ep = tcp_endpoint(free_tcp_port())
+        if secure is not None:
+            router_ep = secure_endpoint(router_ep)
+        connect = (router_ep,)
     if connect:
         endpoints: dict[str, str] = {}
-        sessions = {nm: SessionOptions.client(connect) for nm in names}
+        sessions = {nm: SessionOptions.client(connect, tls=tls[nm]) for nm in names}
     else:
         ports = _distinct_ports(len(names))
         endpoints = {nm: tcp_endpoint(p) for nm, p in zip(names, ports)}
         sessions = {nm: SessionOptions(mode="peer", listen=(endpoints[nm],),
                                        connect=tuple(endpoints[o] for o in names if o != nm)) for nm in names}
-    team = Team(run_id, endpoints, "client" if connect else "peer", tuple(connect), str(scenario), tuple(overrides), seed, cfg)
+    team = Team(run_id, endpoints, "client" if connect else "peer", tuple(connect), str(scenario), tuple(overrides), seed, cfg,
+                router=router_ep, secure=str(Path(secure).resolve()) if secure is not None else None)
     write_manifest(run_dir, exp, frozen or {}, driver="run", run_id=run_id,
                    extra={"mode": cfg.mode, "rate": cfg.rate, "deadline": cfg.deadline, "endpoints": endpoints,
-                          "connect": list(connect)})
+                          "connect": list(connect), "router": router_ep, "secure": secure is not None})
     write_design(run_dir, exp)
 
     ctx = multiprocessing.get_context("spawn")
@@ -432,13 +464,20 @@ def launch(
         for sig in (signal.SIGINT, signal.SIGTERM):
             prev_handlers[sig] = signal.signal(sig, on_signal)
     status = EXIT_OK
+    router_proc = None
     try:
+        if router_ep is not None:
+            router_proc = _start_router(ctx, router_ep, tls.get("router"), exp.agent_ids, run_id, stopping)
+            if router_proc is None:  # interrupted while it started
+                return LaunchResult(EXIT_INTERRUPTED, run_dir, run_id, None, failures, leaves)
         for name in names:
             p = ctx.Process(target=child_entry, args=(specs[name],), name=f"rse-{name.replace(' ', '-')}", daemon=True)
             p.start()
             procs[name] = p
         send_conn.close()  # the monitor holds the writing end now
         team.pids = {nm: p.pid for nm, p in procs.items()}
+        if router_proc is not None:
+            team.pids["router"] = router_proc.pid
         write_json(run_dir / "team.json", team.as_dict())
         say(f"run {run_id}: {exp.N} agents, {cfg.mode}"
             + (f" at {cfg.rate:g} Hz" if cfg.rate else "") + f"; team file {run_dir / 'team.json'}")
@@ -496,6 +535,9 @@ def launch(
                     failures.append(f"{name} failed ({_describe_exit(code)})")
                     if name in ("plant", "monitor"):
                         fatal = True
+                if router_proc is not None and router_proc.exitcode is not None:
+                    failures.append(f"the router failed ({_describe_exit(router_proc.exitcode)})")
+                    fatal = True
                 if fatal:
                     break
                 if all(p.exitcode is not None for nm, p in procs.items() if not (serving and nm == "monitor")):
@@ -511,6 +553,10 @@ def launch(
                     break
     finally:
         _stop_all(procs)
+        if router_proc is not None:  # last: the others leave through it
+            _stop_all({"router": router_proc})
+            with contextlib.suppress(Exception):
+                router_proc.close()
         for name, p in procs.items():
             if name not in noted and p.exitcode not in (None, 0) and not stopping:
                 if not (name.startswith("agent") and p.exitcode < 0):
@@ -535,6 +581,43 @@ def launch(
         failures.append("the monitor wrote no summary")
         status = EXIT_FAILED
     return LaunchResult(status, run_dir, run_id, summary, failures, leaves)
+
+
+ROUTER_START_S = 15.0  # how long the router child may take to open
+
+
+def _tls_files(directory: Path, name: str) -> Any:
+    """The TLS identity of process ``name`` (``"agent 3"`` -> ``agent-3``) in ``directory``."""
+    from transport.secure import tls_files
+
+    try:
+        return tls_files(directory, name.replace(" ", "-"))
+    except ValueError as exc:
+        raise ScenarioError(str(exc)) from None
+
+
+def _start_router(ctx: Any, endpoint: str, tls: Any, agent_ids: Any, run_id: str, stopping: list[int]) -> Any:
+    """Start the router child of ``rse run --router`` and wait until its session is open.
+
+    Returns the process (``None`` if a signal arrived meanwhile); raises
+    :class:`RSEError` if it exits or does not open within :data:`ROUTER_START_S`.
+    """
+    ready = ctx.Event()
+    args = {"listen": (endpoint,), "secure": tls, "agent_ids": tuple(agent_ids), "run_id": run_id}
+    from .router import router_entry
+
+    p = ctx.Process(target=router_entry, args=(args, ready), name="rse-router", daemon=True)
+    p.start()
+    end = time.monotonic() + ROUTER_START_S
+    while not ready.wait(0.05):
+        if stopping or p.exitcode is not None or time.monotonic() > end:
+            why = None if stopping else ("it exited with " + _describe_exit(p.exitcode) if p.exitcode is not None
+                                         else f"it did not open within {ROUTER_START_S:g} s")
+            _stop_all({"router": p})
+            if why is None:
+                return None
+            raise RSEError(f"the router on {endpoint} did not start: {why}")
+    return p
 
 
 def _is_main_thread() -> bool:
