@@ -60,6 +60,53 @@ def router(listen: tuple[str, ...], config_file: Path | None, secure: Path | Non
     click.echo("rse router: stopped")
 
 
+@cli.command()
+@click.argument("directory", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--scenario", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="One certificate per agent of this scenario (its agent ids).")
+@click.option("--agents", type=click.IntRange(1, 10_000), default=None, metavar="N",
+              help="One certificate per agent 1..N (instead of --scenario).")
+@click.option("--host", "hosts", multiple=True, metavar="NAME",
+              help="Also valid for this DNS name or IP address (repeatable): how clients on other hosts name the "
+                   "router. Always valid: localhost, 127.0.0.1, ::1 and the identity (router: the compose service).")
+@click.option("--days", type=click.IntRange(1, 36500), default=365, show_default=True, help="Validity.")
+@click.option("--force", is_flag=True, help="Replace an existing set in DIRECTORY (a new CA: every file changes).")
+@_handle_errors
+def certs(directory: Path, scenario: Path | None, agents: int | None, hosts: tuple[str, ...], days: int,
+          force: bool) -> None:
+    """Write a CA and one TLS certificate and key per process to DIRECTORY (for --secure).
+
+    Files: ca.pem; router, plant, monitor and agent-I (each agent id) .pem and .key, the
+    common name being that identity; keys are mode 0600. The CA's private key is not kept
+    (to add an agent, write the set again with --force and hand out the new files).
+    """
+    if (scenario is None) == (agents is None):
+        raise ScenarioError("give exactly one of --scenario SCENARIO or --agents N")
+    if scenario is not None:
+        from .cli import load_experiment
+
+        exp, _ = load_experiment(scenario, (), None, check_conditions=False)
+        ids = list(exp.agent_ids)
+    else:
+        ids = list(range(1, agents + 1))
+    from transport.certs import write_certs
+
+    identities = ["router", "plant", "monitor", *(f"agent-{i}" for i in ids)]
+    try:
+        written = write_certs(directory, identities, hosts=hosts, days=days, force=force)
+    except ValueError as exc:
+        raise ScenarioError(str(exc)) from None
+    except OSError as exc:  # not a directory, not writable, disk full, ...
+        raise ScenarioError(f"cannot write certificates to {directory}: {exc.strerror or exc}"
+                            + (f" ({exc.filename})" if exc.filename and str(exc.filename) != str(directory) else "")) from None
+    except ImportError as exc:
+        from estimation.errors import RSEError
+
+        raise RSEError(str(exc)) from None
+    click.echo(f"rse certs: {len(written)} files in {directory}: ca.pem and the certificates and keys of router, "
+               f"plant, monitor and agent(s) {_ranges(ids)}")
+
+
 def _ranges(ids: list[int]) -> str:
     """``[1, 2, 3, 5]`` -> ``"1-3, 5"``."""
     spans: list[list[int]] = []

@@ -174,6 +174,7 @@ ROLE_RULES: dict[str, list[tuple[tuple[str, ...], str, tuple[str, ...]]]] = {
         (("put",), "egress", ("plant/loc/{i}", "agent/**", "ctl/done/*")),
     ],
     # every identity: watch who is alive, see the tokens, learn where the subscribers are
+    # (a declared publisher of a client sends only where it knows of a subscriber)
     "everyone": [
         (("declare_liveliness_subscriber", "liveliness_query"), "ingress", ("alive/**",)),
         (("liveliness_token", "declare_subscriber"), "egress", ("**",)),
