@@ -281,3 +281,4 @@ from . import cli_net  # noqa: E402,F401
 from . import cli_report  # noqa: E402,F401
 from . import cli_sweep  # noqa: E402,F401
 from . import cli_deploy  # noqa: E402,F401
+from . import cli_compose  # noqa: E402,F401

@@ -1,0 +1,87 @@
+"""``rse compose``: a docker-compose file running a scenario's team in containers.
+
+Registered on the click group of :mod:`agents.cli` (imported at its end). Exit statuses
+as there: 0 success, 1 failure (e.g. the file cannot be written), 2 bad input (scenario,
+``--set``, ``--run-id``, ``--image``, missing credentials under ``--secure``).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import click
+
+from estimation.errors import ScenarioError
+
+from .cli import _handle_errors, cli, scenario_options, load_experiment
+
+_IMAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@-]*\Z")
+
+
+@cli.command()
+@scenario_options
+@click.option("-o", "--output", "output", default="docker-compose.yml", show_default=True, metavar="FILE",
+              help="Where to write the compose file ('-': standard output; host paths are then relative to the "
+                   "current directory).")
+@click.option("--image", default=None, metavar="NAME",
+              help="Image of every service, built from the repository's Dockerfile "
+                   "(default: resilient-state-estimation:latest).")
+@click.option("--run-id", default=None,
+              help="The run id every service is given (one run, one Rerun recording; the monitor writes "
+                   "/runs/RUN_ID). Default: the scenario's run name.")
+@click.option("--secure", type=click.Path(path_type=Path), default=None, metavar="DIR",
+              help="Credentials written by `rse certs DIR --scenario SCENARIO`: mutual TLS and the router's "
+                   "access control; each service mounts only ca.pem and its own certificate and key.")
+@_handle_errors
+def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output: str, image: str | None,
+            run_id: str | None, secure: Path | None) -> None:
+    """Write a docker-compose file running SCENARIO as a team of containers.
+
+    Services: router (a Zenoh router, port 7447 published), plant, monitor (the run
+    directory in the volume `runs`, the Rerun web viewer on ports 9090 and 9876) and one
+    agent-I per agent of the scenario, each a client of the router with the same run id and
+    the scenario file mounted read-only. Agents restart on failure and rejoin the running
+    team. Then: `docker build -t resilient-state-estimation . && docker compose up`.
+    """
+    from transport.keys import validate_run_id
+
+    from .compose import DEFAULT_IMAGE, GRPC_PORT, WEB_PORT, command_line, compose_spec, default_run_id, render
+
+    image = image if image is not None else DEFAULT_IMAGE
+    if not _IMAGE_RE.match(image):
+        raise ScenarioError(f"--image: invalid image name {image!r} (e.g. resilient-state-estimation:latest)")
+    if secure is not None and not secure.is_dir():
+        raise ScenarioError(f"--secure {secure}: no such directory (write the credentials with "
+                            f"`rse certs {secure} --scenario {scenario}`)")
+    exp, _ = load_experiment(scenario, overrides, seed)
+    default_run = default_run_id(exp.scenario.run.name)
+    run_id = run_id if run_id is not None else default_run
+    try:
+        validate_run_id(run_id)
+    except ValueError as exc:
+        raise ScenarioError(f"--run-id: {exc}") from None
+    to_stdout = output == "-"
+    path = Path(output)
+    base = Path.cwd() if to_stdout else (path.parent if str(path.parent) else Path("."))
+    spec = compose_spec(scenario, exp.agent_ids, base=base, run_id=run_id, image=image, secure=secure,
+                        overrides=overrides, seed=seed)
+    cmd = command_line(scenario, output if to_stdout else path.name, base=base, run_id=run_id,
+                       default_run=default_run, image=image, secure=secure, overrides=overrides, seed=seed)
+    header = [
+        f"{exp.scenario.run.name}: router, plant, monitor and {len(exp.agent_ids)} agents; run id {run_id}.",
+        f"Written by `{cmd}`: regenerate it rather than edit it.",
+        "docker build -t resilient-state-estimation . && docker compose up   (docs/deployment.md)",
+        f"Rerun web viewer: http://127.0.0.1:{WEB_PORT}/?url=rerun+http://127.0.0.1:{GRPC_PORT}/proxy",
+        f"Run directory: the volume 'runs', /runs/{run_id} in the monitor "
+        f"(docker compose cp monitor:/runs/{run_id} runs/).",
+    ]
+    text = render(spec, header)
+    if to_stdout:
+        click.echo(text, nl=False)
+        return
+    path.write_text(text)
+    n = len(exp.agent_ids)
+    click.echo(f"wrote {path}: router, plant, monitor, {n} agent(s) "
+               f"({', '.join(s for s in spec['services'] if s.startswith('agent-'))}); run id {run_id}"
+               + ("; TLS identities from " + str(secure) if secure is not None else ""))

@@ -1,0 +1,195 @@
+"""A docker-compose file for a scenario: one container per process of the team.
+
+``rse compose SCENARIO`` (:mod:`agents.cli_compose`) writes it with :func:`compose_spec`
+and :func:`render`. The services, all from one image whose entry point is ``rse``:
+
+* ``router``: ``rse router --listen tcp/0.0.0.0:7447`` (port 7447 published, so agents on
+  other hosts can join); healthy once it listens (``python -m agents.healthcheck``), and
+  every other service waits for that;
+* ``plant``, ``monitor`` and ``agent-{i}`` (one per agent of the scenario): Zenoh clients of
+  the router (``--client --connect tcp/router:7447``) with the same run id and the
+  scenario file mounted read-only at ``/scenario/NAME.toml``;
+* the monitor writes the run directory to the volume ``runs`` (``/runs/RUN_ID``) and
+  serves the Rerun web viewer (ports 9090 and 9876 published);
+* agents restart on failure (a crashed agent rejoins the running team).
+
+With ``secure`` (a directory written by ``rse certs``) every process presents its own TLS
+identity: a service mounts ``ca.pem`` and its own ``IDENTITY.pem`` / ``IDENTITY.key``
+read-only under ``/certs`` and nothing else (the router also mounts the agents'
+certificates, not their keys: they name the agents it admits).
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+from pathlib import Path
+from typing import Any, Sequence
+
+from estimation.errors import ScenarioError
+
+__all__ = ["DEFAULT_IMAGE", "ROUTER_PORT", "WEB_PORT", "GRPC_PORT", "default_run_id", "compose_spec", "render",
+           "secure_mounts"]
+
+DEFAULT_IMAGE = "resilient-state-estimation:latest"
+ROUTER_PORT = 7447
+WEB_PORT = 9090  # the Rerun web viewer page (rse monitor --web-port)
+GRPC_PORT = 9876  # the gRPC endpoint the page reads the recording from (--grpc-port)
+ROUTER_HOST = "router"  # the router's service name: its host name on the compose network
+SCENARIO_DIR = "/scenario"
+CERTS_DIR = "/certs"
+RUNS_DIR = "/runs"
+HEALTHCHECK = ["CMD", "python", "-m", "agents.healthcheck"]
+
+
+class Quoted(str):
+    """A string the YAML file writes in double quotes (``"9090:9090"``)."""
+
+
+class Flow(list):
+    """A list the YAML file writes on one line (commands)."""
+
+
+def default_run_id(name: str) -> str:
+    """The run id of a compose file: the scenario's run name made key-safe (``mitra_cells``)."""
+    stem = "".join(c if c.isascii() and (c.isalnum() or c in "_.-") else "-" for c in name)[:64].strip("-_.")
+    return stem or "run"
+
+
+def _rel(path: Path, base: Path) -> str:
+    """``path`` as compose reads it from a file in ``base``: ``./relative`` when possible."""
+    try:
+        rel = os.path.relpath(path.resolve(), base.resolve())
+    except ValueError:  # another drive (Windows)
+        return path.resolve().as_posix()
+    rel = Path(rel).as_posix()
+    return rel if rel.startswith("../") else f"./{rel}"
+
+
+def _escape(arg: str) -> str:
+    """Compose interpolates ``$VAR`` in commands: keep a literal ``$``."""
+    return arg.replace("$", "$$")
+
+
+def secure_mounts(secure: Path, identity: str, base: Path, extra: Sequence[str] = ()) -> list[str]:
+    """The read-only mounts of ``identity``'s credentials: ``ca.pem``, ``IDENTITY.pem``,
+    ``IDENTITY.key`` (and the files ``extra``) from ``secure`` at ``/certs``.
+
+    Raises
+    ------
+    ScenarioError
+        A file is missing (named, with the command that writes it).
+    """
+    names = ["ca.pem", f"{identity}.pem", f"{identity}.key", *extra]
+    for name in names:
+        if not (secure / name).is_file():
+            raise ScenarioError(f"--secure {secure}: no {name} (write the credentials with "
+                                f"`rse certs {secure} --scenario SCENARIO`)")
+    return [Quoted(f"{_rel(secure / name, base)}:{CERTS_DIR}/{name}:ro") for name in names]
+
+
+def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id: str,
+                 image: str = DEFAULT_IMAGE, secure: Path | None = None, overrides: Sequence[str] = (),
+                 seed: int | None = None) -> dict[str, Any]:
+    """The docker-compose document (a dict) for a team of ``scenario``.
+
+    Parameters
+    ----------
+    scenario : Path
+        The scenario file (mounted read-only into every service but the router).
+    agent_ids : sequence of int
+        The scenario's agent ids: one service ``agent-{i}`` each.
+    base : Path
+        The directory of the compose file: host paths are written relative to it.
+    run_id : str
+        The run id every service is given (one run, one Rerun recording).
+    image : str
+        The image of every service (built from the repository's Dockerfile).
+    secure : Path, optional
+        A directory written by ``rse certs``: TLS with one identity per service.
+    overrides, seed
+        ``--set KEY=VALUE`` and ``--seed`` passed to every process that reads the scenario.
+
+    Returns
+    -------
+    dict
+        ``{"services": {...}, "volumes": {"runs": {}}}``.
+    """
+    target = f"{SCENARIO_DIR}/{scenario.name}"
+    scenario_mount = Quoted(f"{_rel(scenario, base)}:{target}:ro")
+    connect = f"tcp/{ROUTER_HOST}:{ROUTER_PORT}"
+    common = [target, "--run-id", run_id, "--client", "--connect", connect]
+    for ov in overrides:
+        common += ["--set", _escape(ov)]
+    if seed is not None:
+        common += ["--seed", str(seed)]
+    after_router = {"router": {"condition": "service_healthy"}}
+
+    def role(command: list[str], identity: str) -> dict[str, Any]:
+        svc: dict[str, Any] = {"image": image, "init": True}
+        args = list(command)
+        volumes = [scenario_mount]
+        if secure is not None:
+            args += ["--secure", CERTS_DIR, "--identity", identity]
+            volumes += secure_mounts(secure, identity, base)
+        svc["command"] = Flow(args)
+        svc["volumes"] = volumes
+        svc["depends_on"] = after_router
+        return svc
+
+    router_cmd = ["router", "--listen", f"tcp/0.0.0.0:{ROUTER_PORT}"]
+    router: dict[str, Any] = {"image": image, "init": True}
+    if secure is not None:
+        router_cmd += ["--secure", CERTS_DIR, "--run-id", run_id]
+        router["volumes"] = secure_mounts(secure, "router", base, extra=[f"agent-{i}.pem" for i in agent_ids])
+    router["command"] = Flow(router_cmd)
+    router["ports"] = [Quoted(f"{ROUTER_PORT}:{ROUTER_PORT}")]
+    router["healthcheck"] = {"test": Flow(HEALTHCHECK), "interval": "2s", "timeout": "5s", "retries": 15}
+    router["restart"] = "unless-stopped"
+
+    services: dict[str, Any] = {"router": router}
+    services["plant"] = role(["plant", *common], "plant")
+    monitor = role(["monitor", *common, "--out", f"{RUNS_DIR}/{run_id}", "--serve-web",
+                    "--web-port", str(WEB_PORT), "--grpc-port", str(GRPC_PORT)], "monitor")
+    monitor["volumes"].append(Quoted(f"runs:{RUNS_DIR}"))
+    monitor["ports"] = [Quoted(f"{WEB_PORT}:{WEB_PORT}"), Quoted(f"{GRPC_PORT}:{GRPC_PORT}")]
+    services["monitor"] = monitor
+    for i in agent_ids:
+        svc = role(["agent", "--id", str(i), *common], f"agent-{i}")
+        svc["restart"] = "on-failure"
+        services[f"agent-{i}"] = svc
+    return {"services": services, "volumes": {"runs": {}}}
+
+
+def command_line(scenario: Path, out: str, *, base: Path, run_id: str, default_run: str, image: str,
+                 secure: Path | None, overrides: Sequence[str], seed: int | None) -> str:
+    """The ``rse compose`` command that writes this file, run from its directory."""
+    args = ["rse", "compose", _rel(scenario, base).removeprefix("./"), "-o", out]
+    if image != DEFAULT_IMAGE:
+        args += ["--image", image]
+    if run_id != default_run:
+        args += ["--run-id", run_id]
+    if secure is not None:
+        args += ["--secure", _rel(secure, base).removeprefix("./")]
+    for ov in overrides:
+        args += ["--set", ov]
+    if seed is not None:
+        args += ["--seed", str(seed)]
+    return shlex.join(args)
+
+
+def render(spec: dict[str, Any], header: Sequence[str] = ()) -> str:
+    """The YAML text of ``spec`` (PyYAML), after ``header`` as comment lines."""
+    try:
+        import yaml
+    except ImportError:
+        raise ScenarioError("rse compose needs PyYAML: pip install pyyaml") from None
+
+    class Dumper(yaml.SafeDumper):
+        def ignore_aliases(self, data: Any) -> bool:  # no &anchors / *aliases: every service in full
+            return True
+
+    Dumper.add_representer(Quoted, lambda d, s: d.represent_scalar("tag:yaml.org,2002:str", str(s), style='"'))
+    Dumper.add_representer(Flow, lambda d, s: d.represent_sequence("tag:yaml.org,2002:seq", list(s), flow_style=True))
+    body = yaml.dump(spec, Dumper=Dumper, sort_keys=False, default_flow_style=False, width=10_000, allow_unicode=True)
+    return "".join(f"# {line}\n".replace("# \n", "#\n") for line in header) + body
