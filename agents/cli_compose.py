@@ -80,6 +80,7 @@ def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output
     if to_stdout:
         click.echo(text, nl=False)
         return
+    path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
     n = len(exp.agent_ids)
     click.echo(f"wrote {path}: router, plant, monitor, {n} agent(s) "

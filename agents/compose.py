@@ -141,8 +141,9 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     router: dict[str, Any] = {"image": image, "init": True}
     if secure is not None:
         router_cmd += ["--secure", CERTS_DIR, "--run-id", run_id]
-        router["volumes"] = secure_mounts(secure, "router", base, extra=[f"agent-{i}.pem" for i in agent_ids])
     router["command"] = Flow(router_cmd)
+    if secure is not None:
+        router["volumes"] = secure_mounts(secure, "router", base, extra=[f"agent-{i}.pem" for i in agent_ids])
     router["ports"] = [Quoted(f"{ROUTER_PORT}:{ROUTER_PORT}")]
     router["healthcheck"] = {"test": Flow(HEALTHCHECK), "interval": "2s", "timeout": "5s", "retries": 15}
     router["restart"] = "unless-stopped"
