@@ -191,6 +191,27 @@ def test_two_teams_at_once_equal_the_simulator_with_bad_bytes_injected(procs, tm
     assert team["run_id"] == ta["run_id"]
 
 
+def test_run_through_a_router_equals_the_simulator(procs, tmp_path):
+    """`rse run --router`: a router child on a free loopback port, plant, monitor and agents
+    its clients; lockstep with drops and delays equals rse simulate; team.json names the
+    router (so `rse agent --team` rejoins through it), which is gone after the run."""
+    ov = ("run.dt=0.01", "run.duration=6", "output.window=[4.0, 6.0]", "expect=[]", "network.channel.drop_p=0.2",
+          "network.channel.delay_max=2")
+    out = tmp_path / "run"
+    args = ["run", str(LKS), "--router", "--out", str(out), "--save-estimates", "--no-progress", "--deadline", "30"]
+    for o in ov:
+        args += ["--set", o]
+    p = procs.start(_cmd(*args))
+    so, se = p.communicate(timeout=55)
+    assert p.returncode == 0, se
+    team = json.loads((out / "team.json").read_text())
+    assert team["transport"] == "client" and team["connect"] == [team["router"]]
+    assert team["router"].startswith("tcp/127.0.0.1:") and team["endpoints"] == {}
+    assert not psutil.pid_exists(team["pids"]["router"]) or \
+        psutil.Process(team["pids"]["router"]).status() == psutil.STATUS_ZOMBIE
+    _compare(out, LKS, ov, tmp_path / "sim")
+
+
 def test_kill_an_agent_and_restart_it(procs, tmp_path):
     """Realtime at 100 Hz (dt = 0.01) up to t = 31 s: kill agent 3 at t = 15 s, restart it
     at t = 20 s with `rse agent --id 3 --team`; the others stay within the bounds, agent 3
