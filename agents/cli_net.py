@@ -248,7 +248,10 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
             raise ScenarioError("--client needs --connect tcp/HOST:PORT (a Zenoh router)")
         session = _client_options(eps, tls)
     elif data and not eps and listen is None:
-        session = session_for(data, label, tls=tls)
+        try:
+            session = session_for(data, label, tls=tls)
+        except ValueError as exc:  # --secure against a team of peers: no router to be a client of
+            raise ScenarioError(f"--secure: the team has no router ({exc}); give --client --connect") from None
     elif tls is not None:
         session = _client_options(eps, tls)  # a secure team file: --connect names its router
     else:
