@@ -5,7 +5,8 @@ process of the container (the entry point, PID 1, or the child of ``init: true``
 ``docker-init``), reads the endpoints of its command line and checks the sockets behind
 them:
 
-* ``--listen PROTO/HOST:PORT`` (the router, a peer): a socket listens on ``PORT``;
+* ``--listen PROTO/HOST:PORT`` (the router, a peer): a socket listens on ``PORT`` (on
+  some port for ``PORT`` 0);
 * ``--connect PROTO/HOST:PORT`` (a client of the router, a peer): a TCP connection to one of
   those ports is established, i.e. the process's Zenoh session is connected;
 * no endpoint on the command line (e.g. ``rse router`` with its default, or a
@@ -147,12 +148,13 @@ def check(pid: int | None = None) -> tuple[bool, str]:
     what = label or f"rse {exp.command}".rstrip()
     listening = {c.laddr.port for c in conns if c.status == psutil.CONN_LISTEN and c.laddr}
     established = {c.raddr.port for c in conns if c.status == psutil.CONN_ESTABLISHED and c.raddr}
-    missing = [p for p in exp.listen if p not in listening]
+    missing = [p for p in exp.listen if p not in listening and not (p == 0 and listening)]  # 0: any port
     if missing:
         return False, f"{what}: not listening on port {', '.join(map(str, missing))}"
+    shown = sorted({p for p in exp.listen if p} | (listening if 0 in exp.listen else set()))
     if exp.connect and not established & set(exp.connect):
         return False, f"{what}: no connection to port {' or '.join(map(str, sorted(set(exp.connect))))} (its Zenoh session is not connected)"
-    parts = [f"listening on {', '.join(map(str, exp.listen))}"] if exp.listen else []
+    parts = [f"listening on {', '.join(map(str, shown))}"] if exp.listen else []
     if exp.connect:
         parts.append(f"connected to port {', '.join(str(p) for p in sorted(established & set(exp.connect)))}")
     return True, f"{what}: " + ("; ".join(parts) if parts else "running")
