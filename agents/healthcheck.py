@@ -89,13 +89,18 @@ def expected_sockets(argv: Sequence[str]) -> Expected:
 def rse_argv(cmdline: Sequence[str]) -> list[str] | None:
     """The arguments after ``rse`` in a process's command line, or None if it is not ``rse``.
 
-    Matches ``rse ...``, ``python /usr/local/bin/rse ...`` and ``python -m agents.cli ...``.
+    Matches ``rse ...``, ``python /usr/local/bin/rse ...`` and ``python -m agents.cli ...``;
+    not an init that starts it (``docker-init -- rse ...``), whose sockets are not rse's.
     """
-    for i, a in enumerate(cmdline[:3]):
-        if os.path.basename(a) == "rse":
-            return list(cmdline[i + 1:])
-        if a == "agents.cli" and i > 0 and cmdline[i - 1] == "-m":
-            return list(cmdline[i + 1:])
+    args = list(cmdline)
+    if args and os.path.basename(args[0]) == "rse":
+        return args[1:]
+    if not args or not os.path.basename(args[0]).startswith("python"):
+        return None
+    if len(args) > 1 and os.path.basename(args[1]) == "rse":
+        return args[2:]
+    if args[1:3] == ["-m", "agents.cli"]:
+        return args[3:]
     return None
 
 

@@ -354,6 +354,26 @@ def test_expected_sockets_of_rse_command_lines():
     assert rse_argv(["rse", "router"]) == ["router"]
     assert rse_argv(["python", "-m", "agents.cli", "monitor"]) == ["monitor"]
     assert rse_argv(["python", "-m", "agents.healthcheck"]) is None
+    assert rse_argv(["/sbin/docker-init", "--", "rse", "router"]) is None  # init: true's PID 1 is not rse
+    assert rse_argv(["/usr/bin/tini", "rse", "plant"]) is None
+
+
+def test_find_rse_skips_the_init_and_itself():
+    from agents.healthcheck import find_rse
+
+    class P:
+        def __init__(self, pid, cmdline):
+            self.pid, self._cmd = pid, cmdline
+
+        def cmdline(self):
+            return self._cmd
+
+    tree = [P(1, ["/sbin/docker-init", "--", "rse", "router", "--listen", "tcp/0.0.0.0:7447"]),
+            P(7, ["/usr/local/bin/python3.11", "/usr/local/bin/rse", "router", "--listen", "tcp/0.0.0.0:7447"]),
+            P(9, ["/usr/local/bin/python3.11", "-m", "agents.healthcheck"])]
+    proc, argv = find_rse(tree, me=9)
+    assert proc.pid == 7 and argv == ["router", "--listen", "tcp/0.0.0.0:7447"]
+    assert find_rse(tree[:1] + tree[2:], me=9) is None
 
 
 def _free_port() -> int:
