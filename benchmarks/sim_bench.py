@@ -8,25 +8,27 @@ few rounds, and evaluating them is not the simulator's work).
 
 Every team size is measured in a fresh spawned process (:func:`measure_team`): peak RSS
 is then that process's own, and one size does not warm the caches of the next. In it the
-scenario is built once (timed: the build time), one untimed run warms up and sets the
-peak RSS, then each timed repeat runs a fresh copy of the built experiment (unpickled;
-not timed) through :func:`agents.simulate.simulate`, the entry point of
-``rse simulate`` and ``rse bench simulate``. Its ``elapsed`` is ``time.perf_counter``
-around the round loop only (monitor included, no files, no Rerun output); the node set-up
-of the call is reported apart. The best of the repeats is kept.
+scenario is built once (timed: the build time), then each repeat runs it through
+:func:`agents.simulate.simulate`, the entry point of ``rse simulate`` and
+``rse bench simulate``, which builds fresh nodes, plant and monitor from the experiment
+(it does not change the experiment: every repeat must end with the same worst error,
+else the measurement fails). Its ``elapsed`` is ``time.perf_counter`` around the round
+loop only (monitor included, no files, no Rerun output); the node set-up of the call is
+reported apart. The best of the repeats is kept (the first one also warms the caches; a
+separate warm-up run would cost minutes at 1024 agents). The peak RSS is read after the
+build and the first run.
 """
 
 from __future__ import annotations
 
 import math
-import pickle
 import time
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from .report import ROOT, Figure
+from .report import ROOT, BenchmarkError, Figure
 
 SCENARIO = ROOT / "scenarios" / "mitra_cells.toml"
 AGENTS_PER_CELL = 4  # the scenario's per_cell
@@ -86,7 +88,7 @@ def measure_team(agents: int, rounds: int, repeats: int) -> dict[str, Any]:
     ----------
     agents : team size (16, 64, 256, 1024, ...)
     rounds : ``run.rounds`` (the loop runs ``rounds + 1`` rounds, ``k = 0 .. rounds``)
-    repeats : timed runs after the warm-up run (0: memory only)
+    repeats : timed runs (0: one run, for the memory figures only)
 
     Returns
     -------
@@ -94,7 +96,12 @@ def measure_team(agents: int, rounds: int, repeats: int) -> dict[str, Any]:
         ``N``, ``n``, ``rounds`` (simulated per run), ``fused_per_round``, ``build_s``,
         ``loop_s`` and ``setup_s`` (one per timed run), ``rss_imports_mb`` (RSS
         after the imports, before building), ``rss_peak_mb`` (peak after the build and
-        the warm-up run).
+        the first run).
+
+    Raises
+    ------
+    BenchmarkError
+        If the scenario does not give ``agents`` agents, or two runs end differently.
     """
     from agents.cli import load_experiment  # also pins BLAS to one thread, as rse does
     from agents.net.roles import maxrss_mb
@@ -105,21 +112,26 @@ def measure_team(agents: int, rounds: int, repeats: int) -> dict[str, Any]:
     exp, _ = load_experiment(SCENARIO, team_overrides(agents, rounds), None)
     build_s = time.perf_counter() - t0
     if exp.N != agents:
-        raise RuntimeError(f"mitra_cells.toml with K = {agents // AGENTS_PER_CELL} has {exp.N} agents, expected {agents}")
-    blob = pickle.dumps(exp)
-    res = simulate(exp)  # warm-up, and the peak RSS of one run
-    out: dict[str, Any] = {"N": exp.N, "n": exp.n, "rounds": res.rounds, "fused_per_round": fused_values_per_round(exp),
-                           "build_s": build_s, "rss_imports_mb": rss0, "rss_peak_mb": maxrss_mb(),
-                           "loop_s": [], "setup_s": []}
-    del exp, res
-    for _ in range(repeats):
-        exp = pickle.loads(blob)
+        raise BenchmarkError(f"mitra_cells.toml with K = {agents // AGENTS_PER_CELL} has {exp.N} agents, expected {agents}")
+    out: dict[str, Any] = {"N": exp.N, "n": exp.n, "fused_per_round": fused_values_per_round(exp), "build_s": build_s,
+                           "rss_imports_mb": rss0, "loop_s": [], "setup_s": []}
+    first = None
+    for r in range(max(1, repeats)):
         t = time.perf_counter()
         res = simulate(exp)
         total = time.perf_counter() - t
-        out["loop_s"].append(res.elapsed)
-        out["setup_s"].append(max(0.0, total - res.elapsed))
-        del exp, res
+        worst = res.monitor.current_worst()
+        if r == 0:
+            out["rss_peak_mb"] = maxrss_mb()
+            out["rounds"] = res.rounds
+            first = worst
+        elif not (worst == first or (math.isnan(worst) and math.isnan(first))):
+            raise BenchmarkError(f"{agents} agents: run {r + 1} ended with worst error {worst!r}, run 1 with {first!r}; "
+                                 "the simulator is not repeatable on one built experiment")
+        if repeats:
+            out["loop_s"].append(res.elapsed)
+            out["setup_s"].append(max(0.0, total - res.elapsed))
+        del res
     return out
 
 

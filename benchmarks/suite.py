@@ -22,7 +22,8 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import sys  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass, field, replace  # noqa: E402
 from datetime import datetime, timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, Callable  # noqa: E402
@@ -46,16 +47,14 @@ class Plan:
 
     Parameters
     ----------
-    sim_rounds : simulator team size (agents) -> ``run.rounds``
-    sim_repeats : timed simulator runs per size (the best is kept)
+    sim : simulator team size (agents) -> (``run.rounds``, timed runs; the best is kept)
     run_processes : agent process counts of ``rse run`` (keys of :data:`benchmarks.run_bench.TEAMS`)
     run_rounds : ``run.rounds`` of each ``rse run`` (and the skeleton's rounds)
     sweep_drop_ps, sweep_seeds, sweep_rounds, sweep_jobs : the sweep's grid, seeds per
         point, ``run.rounds`` and worker processes
     """
 
-    sim_rounds: dict[int, int]
-    sim_repeats: int
+    sim: dict[int, tuple[int, int]]
     run_processes: tuple[int, ...]
     run_rounds: int
     sweep_drop_ps: tuple[float, ...]
@@ -64,16 +63,24 @@ class Plan:
     sweep_jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
 
     def settings(self) -> dict[str, Any]:
-        return {"sim_rounds": {str(k): v for k, v in self.sim_rounds.items()}, "sim_repeats": self.sim_repeats,
+        return {"sim_rounds": {str(k): v[0] for k, v in self.sim.items()},
+                "sim_repeats": {str(k): v[1] for k, v in self.sim.items()},
                 "run_processes": list(self.run_processes), "run_rounds": self.run_rounds,
                 "sweep_drop_ps": list(self.sweep_drop_ps), "sweep_seeds": self.sweep_seeds,
                 "sweep_rounds": self.sweep_rounds, "sweep_jobs": self.sweep_jobs}
 
+    def limited(self, max_agents: int | None) -> "Plan":
+        """This plan without the simulator teams and ``rse run`` teams larger than ``max_agents``."""
+        if max_agents is None:
+            return self
+        return replace(self, sim={k: v for k, v in self.sim.items() if k <= max_agents},
+                       run_processes=tuple(p for p in self.run_processes if p <= max_agents))
 
-FULL = Plan(sim_rounds={16: 200, 64: 100, 256: 40, 1024: 20}, sim_repeats=3, run_processes=(2, 4, 8, 16, 32),
+
+FULL = Plan(sim={16: (200, 5), 64: (100, 3), 256: (40, 3), 1024: (20, 2)}, run_processes=(2, 4, 8, 16, 32),
             run_rounds=300, sweep_drop_ps=(0.1, 0.2, 0.3, 0.4), sweep_seeds=2, sweep_rounds=100)
-QUICK = Plan(sim_rounds={16: 10}, sim_repeats=2, run_processes=(2,), run_rounds=20, sweep_drop_ps=(0.1, 0.3),
-             sweep_seeds=1, sweep_rounds=10, sweep_jobs=min(2, os.cpu_count() or 1))
+QUICK = Plan(sim={16: (10, 2)}, run_processes=(2,), run_rounds=20, sweep_drop_ps=(0.1, 0.3), sweep_seeds=1,
+             sweep_rounds=10, sweep_jobs=1)
 
 
 @dataclass
@@ -92,12 +99,12 @@ def steps(plan: Plan, sections: list[str]) -> list[Step]:
     if want_sim or want_mem:
         ref: dict[str, float] = {}
 
-        def sim_step(agents: int, rounds: int) -> Callable[[], list[Figure]]:
+        def sim_step(agents: int, rounds: int, repeats: int) -> Callable[[], list[Figure]]:
             def go() -> list[Figure]:
-                m = sim_bench.measure_team_fresh(agents, rounds, plan.sim_repeats if want_sim else 0)
+                m = sim_bench.measure_team_fresh(agents, rounds, repeats)
                 figs: list[Figure] = []
                 if want_sim:
-                    figs += sim_bench.simulate_figures(m, plan.sim_repeats, ref.get("ns"))
+                    figs += sim_bench.simulate_figures(m, repeats, ref.get("ns"))
                     if agents == 16:
                         ref["ns"] = next(f.value for f in figs if f.name == "ns_per_fused_value")
                 if want_mem:
@@ -106,15 +113,17 @@ def steps(plan: Plan, sections: list[str]) -> list[Step]:
             return go
 
         name = "simulate" if want_sim else "memory"
-        for agents, rounds in sorted(plan.sim_rounds.items()):
-            todo.append(Step(name, f"{name}: simulator, {agents} agents, {rounds + 1} rounds", sim_step(agents, rounds)))
+        for agents, (rounds, repeats) in sorted(plan.sim.items()):
+            repeats = repeats if want_sim else 0
+            todo.append(Step(name, f"{name}: simulator, {agents} agents, {max(1, repeats)} x {rounds + 1} rounds",
+                             sim_step(agents, rounds, repeats)))
     if "run" in sections:
         for procs in plan.run_processes:
             todo.append(Step("run", f"run: rse run and Zenoh skeleton, {procs} agent processes, {plan.run_rounds} rounds",
                              lambda procs=procs: run_bench.run_figures(run_bench.measure_run(procs, plan.run_rounds))))
     if "sweep" in sections:
         runs = len(plan.sweep_drop_ps) * plan.sweep_seeds
-        todo.append(Step("sweep", f"sweep: {runs} runs, {plan.sweep_jobs} jobs",
+        todo.append(Step("sweep", f"sweep: {runs} runs, {plan.sweep_jobs} worker process(es)",
                          lambda: sweep_bench.sweep_figures(sweep_bench.measure_sweep(
                              list(plan.sweep_drop_ps), plan.sweep_seeds, plan.sweep_rounds, plan.sweep_jobs))))
     return todo
@@ -129,19 +138,22 @@ def order_figures(figs: list[Figure]) -> list[Figure]:
     return sorted(figs, key=lambda f: DISPLAY_ORDER.index(f.section))
 
 
-def run_suite(plan: Plan, sections: list[str], *, progress: bool = True) -> tuple[list[Figure], list[str]]:
-    """Run every step; returns the figures and one message per failed step."""
+def run_suite(plan: Plan, sections: list[str], *, progress: bool = True
+              ) -> tuple[list[Figure], list[str], list[dict[str, Any]]]:
+    """Run every step; returns the figures, one message per failed step and each step's wall time."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     todo = steps(plan, sections)
     figs: list[Figure] = []
     errors: list[str] = []
+    timings: list[dict[str, Any]] = []
     bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                    console=err, disable=not progress)
     with bar:
         task = bar.add_task("benchmarks", total=len(todo))
         for step in todo:
             bar.update(task, description=step.label)
+            t0 = time.perf_counter()
             try:
                 figs += step.run()
             except BenchmarkError as exc:
@@ -150,9 +162,10 @@ def run_suite(plan: Plan, sections: list[str], *, progress: bool = True) -> tupl
                 if os.environ.get("RSE_DEBUG"):
                     raise
                 errors.append(f"{step.section}: {step.label}: {type(exc).__name__}: {exc}")
+            timings.append({"step": step.label, "elapsed_s": round(time.perf_counter() - t0, 3)})
             bar.advance(task)
         bar.update(task, description="benchmarks done")
-    return order_figures(figs), errors
+    return order_figures(figs), errors, timings
 
 
 def parse_sections(value: str | None) -> list[str]:
@@ -180,9 +193,11 @@ def default_json_path(git: dict[str, Any]) -> Path:
               help="A result file of an earlier run: print its value and new / old per figure.")
 @click.option("--load", "load", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Print the figures of a saved result file instead of running (with --compare: compare them).")
+@click.option("--max-agents", type=click.IntRange(min=2), default=None, metavar="N",
+              help="Skip the simulator teams and rse run teams larger than N (e.g. 256: no 1024-agent team).")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
 def cli(quick: bool, only: str | None, json_path: Path | None, compare: Path | None, load: Path | None,
-        progress: bool) -> None:
+        max_agents: int | None, progress: bool) -> None:
     """Benchmark the simulator, rse run, memory and rse sweep; print one table and write JSON."""
     try:
         sections = parse_sections(only)
@@ -192,26 +207,27 @@ def cli(quick: bool, only: str | None, json_path: Path | None, compare: Path | N
     try:
         old = read_document(compare) if compare is not None else None
         if load is not None:
-            if quick or only or json_path:
-                raise BenchmarkError("--load prints a saved file: it takes no --quick, --only or --json")
+            if quick or only or json_path or max_agents:
+                raise BenchmarkError("--load prints a saved file: it takes no --quick, --only, --json or --max-agents")
             out.print(table(read_document(load), old))
             return
     except BenchmarkError as exc:
         err.print(f"[red]error:[/red] {exc}", soft_wrap=True)
         sys.exit(EXIT_BAD_INPUT)
-    plan = QUICK if quick else FULL
+    plan = (QUICK if quick else FULL).limited(max_agents)
     machine, git = machine_info(), git_info()
     cores, load0 = machine.get("cores_logical") or 1, (machine.get("loadavg_start") or [0.0])[0]
     if load0 > 0.5 * cores:
         err.print(f"[yellow]warning:[/yellow] the machine is busy (load average {load0:.1f} on {cores} cores): "
                   "the figures will be low", soft_wrap=True)
     try:
-        figs, errors = run_suite(plan, sections, progress=progress)
+        figs, errors, timings = run_suite(plan, sections, progress=progress)
     except KeyboardInterrupt:
         err.print("[red]error:[/red] interrupted")
         sys.exit(EXIT_INTERRUPTED)
     doc = result_document(figs, machine=machine, git=git, quick=quick, sections=sections, errors=errors)
     doc["settings"] = plan.settings()
+    doc["steps"] = timings
     path = json_path or default_json_path(git)
     try:
         write_document(doc, path)

@@ -48,7 +48,7 @@ def measure_sweep(drop_ps: list[float], seeds: int, rounds: int, jobs: int) -> d
 def sweep_figures(m: dict[str, Any]) -> list[Figure]:
     """Figures of section ``sweep`` from one :func:`measure_sweep` result."""
     size = f"{m['runs']} runs"
-    how = f"{m['N']} agents x {m['rounds']} rounds per run, {m['jobs']} jobs"
+    how = f"{m['N']} agents x {m['rounds']} rounds per run, {m['jobs']} worker process(es)"
     return [
         Figure("sweep", size, "elapsed_s", "sweep wall time", m["elapsed_s"], "s", False,
                f"{m['grid']}, {m['seeds']} seed(s)"),

@@ -13,6 +13,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -73,6 +74,8 @@ def test_quick_run_writes_every_figure_with_sane_values(quick):
     # the checkout's commit (not compared with HEAD: other commits may land while the suite runs)
     assert re.fullmatch(r"[0-9a-f]{40}", doc["git"]["commit"]) and isinstance(doc["git"]["dirty"], bool)
     assert doc["settings"]["run_processes"] == [2]
+    assert [s["step"].split(":")[0] for s in doc["steps"]] == ["simulate", "run", "sweep"]
+    assert all(s["elapsed_s"] > 0 for s in doc["steps"])
 
 
 @pytest.mark.multiprocess
@@ -110,9 +113,10 @@ def test_fused_values_per_round_counts_in_neighbour_messages_times_n():
     exp, _ = load_experiment(SCENARIOS / "mitra_cells.toml", sim_bench.team_overrides(16, 2)
                              + ("network.graph.remove=[[1, 5]]",), None)
     assert sim_bench.fused_values_per_round(exp) == (16 * 8 - 2) * 80  # one edge fewer, both ways
-    lks, _ = load_experiment(SCENARIOS / "lee_kim_shim.toml", ("run.duration=1", "expect=[]"), None)
+    other = SimpleNamespace(scenario=SimpleNamespace(estimator=SimpleNamespace(algorithm="lee_kim_shim")),
+                            N=exp.N, n=exp.n, in_neighbours=exp.in_neighbours)  # messages of another length
     with pytest.raises(ValueError, match="LFRE"):
-        sim_bench.fused_values_per_round(lks)
+        sim_bench.fused_values_per_round(other)
 
 
 def test_simulator_team_sizes_are_multiples_of_a_cell():
@@ -144,3 +148,13 @@ def test_bad_input_is_a_one_line_error(tmp_path):
     assert res.returncode == 2 and "not a benchmark result file" in res.stderr
     with pytest.raises(BenchmarkError, match="not a benchmark result file"):
         read_document(other)
+
+
+def test_max_agents_drops_the_larger_teams_only():
+    from benchmarks.suite import FULL
+
+    small = FULL.limited(256)
+    assert sorted(small.sim) == [16, 64, 256] and small.run_processes == (2, 4, 8, 16, 32)
+    assert FULL.limited(8).run_processes == (2, 4, 8) and not FULL.limited(8).sim
+    assert FULL.limited(None) is FULL
+    assert all(rounds >= 20 and repeats >= 2 for rounds, repeats in FULL.sim.values())
