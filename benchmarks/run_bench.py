@@ -76,6 +76,8 @@ def measure_run(processes: int, rounds: int, *, deadline: float = 2.0, skeleton:
     with tempfile.TemporaryDirectory(prefix="rse-benchmarks-") as tmp:
         res = launch(SCENARIO, overrides, None, Path(tmp) / "run", RunConfig(deadline=deadline), progress=False,
                      exp=exp, frozen=frozen, say=lambda msg: None)
+    if res.status == 130:  # the launcher caught Ctrl-C / SIGTERM and stopped the team: stop the suite too
+        raise KeyboardInterrupt
     if res.status != 0 or res.summary is None:
         raise BenchmarkError(f"rse run with {processes} agent processes failed: "
                              + ("; ".join(res.failures) or f"exit status {res.status}"))
