@@ -25,7 +25,6 @@ import math
 import time
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
-from pathlib import Path
 from typing import Any
 
 from .report import ROOT, BenchmarkError, Figure
