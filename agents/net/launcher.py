@@ -552,9 +552,9 @@ def launch(
                     failures.append(f"{', '.join(late)} did not stop after the end of the run")
                     break
     finally:
-        _stop_all(procs)
-        if router_proc is not None:  # last: the others leave through it
-            _stop_all({"router": router_proc})
+        # the router within the same grace period (it is last: the others leave first)
+        _stop_all(procs if router_proc is None else {**procs, "router": router_proc})
+        if router_proc is not None:
             with contextlib.suppress(Exception):
                 router_proc.close()
         for name, p in procs.items():
