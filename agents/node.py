@@ -88,12 +88,17 @@ class AgentNode:
         What goes on the network is :meth:`publish`'s business. The inbox is keyed by the
         in-neighbours' agent *indices* (``Received.sender`` likewise).
         """
+        return self.estimator.step(k, measurement, self.open_round(k))
+
+    def open_round(self, k: int) -> dict[int, Received]:
+        """Make the messages visible in round ``k`` visible; returns the inbox of round
+        ``k`` (the first half of :meth:`run_round`, for a driver that batches estimators)."""
         if self._pending:
             self._release(k)
         elif self.arrived:
             self.arrived.clear()
         self.round = k
-        return self.estimator.step(k, measurement, self.inbox)
+        return self.inbox
 
     def estimate(self, payload: np.ndarray) -> np.ndarray:
         """The estimate of ``x[k]`` after :meth:`run_round` returned ``payload``."""

@@ -14,12 +14,14 @@ Deterministic for a given seed.
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 
+from estimation.trimmed_mean import fuse
 from scenarios.build import Experiment
 from transport.byzantine import Forged
 from transport.channel import Channel, loss_windows
@@ -27,6 +29,47 @@ from transport.channel import Channel, loss_windows
 from .monitor import Monitor, has_diagnostics, read_diagnostics
 from .node import AgentNode
 from .plant import PlantRole
+
+
+def batch_groups(exp: Experiment, nodes: list[AgentNode]) -> list[tuple[str, int, list[int]]]:
+    """The regular agents whose fusion a batched round computes in one call.
+
+    An estimator takes part when it splits its step into ``begin`` / ``finish`` around
+    :func:`estimation.trimmed_mean.fuse` (LFRE and SW-LFRE do); agents are grouped by
+    ``(fusion, f)``. Byzantine agents always run their own ``step``.
+    """
+    groups: dict[tuple[str, int], list[int]] = {}
+    for i, node in enumerate(nodes):
+        est = node.estimator
+        if i in exp.byzantine or not (hasattr(est, "begin") and hasattr(est, "finish")):
+            continue
+        groups.setdefault((est.fusion, est.f), []).append(i)
+    return [(fusion, f, members) for (fusion, f), members in groups.items()]
+
+
+def fuse_batch(values: list[np.ndarray | None], *, fusion: str, f: int) -> list[np.ndarray | None]:
+    """:func:`~estimation.trimmed_mean.fuse` of each ``(F_i, d_i)`` block (None: nothing),
+    in one call over the blocks stacked row-wise and padded to the widest with NaN (a
+    missing value). Every row's result is exactly what the per-agent call gives."""
+    present = [v for v in values if v is not None]
+    if not present:
+        return [None] * len(values)
+    width = max(v.shape[1] for v in present)
+    stacked = np.full((sum(v.shape[0] for v in present), width), np.nan)
+    row = 0
+    for v in present:
+        stacked[row:row + v.shape[0], :v.shape[1]] = v
+        row += v.shape[0]
+    got = fuse(stacked, fusion=fusion, f=f)
+    out: list[np.ndarray | None] = []
+    row = 0
+    for v in values:
+        if v is None:
+            out.append(None)
+        else:
+            out.append(got[row:row + v.shape[0]])
+            row += v.shape[0]
+    return out
 
 
 def make_channel(exp: Experiment) -> Channel:
@@ -45,7 +88,8 @@ def make_nodes(exp: Experiment, channel: Channel) -> list[AgentNode]:
     for i, aid in enumerate(exp.agent_ids):
         node = AgentNode(aid, exp.make_estimator(i), channel, [exp.agent_ids[j] for j in exp.in_neighbours(i)],
                          index_of=index_of, out_neighbours=[exp.agent_ids[j] for j in exp.out_neighbours(i)])
-        node.strategy = exp.strategies.get(i)
+        strategy = exp.strategies.get(i)  # a fresh copy: a strategy keeps state (its RNG, history)
+        node.strategy = copy.deepcopy(strategy) if strategy is not None else None
         nodes.append(node)
     return nodes
 
@@ -112,6 +156,7 @@ def simulate(
     keep_trajectories: bool = False,
     record: bool = True,
     dashboard: Any = None,
+    batched: bool = True,
 ) -> SimResult:
     """Run the scenario in-process.
 
@@ -121,6 +166,10 @@ def simulate(
     keep_trajectories : also return every estimate and the true state (for equivalence tests)
     record : compute the monitor's metrics (benchmarks may switch it off)
     dashboard : an :class:`agents.dashboard.Dashboard` to stream to (or None)
+    batched : fuse the regular agents' neighbour values in one call per round
+        (:func:`batch_groups`, :func:`fuse_batch`); the per-agent ``begin`` / ``finish``
+        halves of the estimators are the same code, so the estimates are identical to
+        ``batched=False`` (each agent's own ``step``), only faster for large teams
     """
     channel = make_channel(exp)
     nodes = make_nodes(exp, channel)
@@ -145,6 +194,9 @@ def simulate(
             dashboard.log_chunk(chunk_rows, mon, x=xs, est=ests, delivered=frames, counters=counters)
             frames.clear()
         mon.on_chunk = on_chunk
+    groups = batch_groups(exp, nodes) if batched else []
+    in_batch = {i for _, _, members in groups for i in members}
+    fused_now: dict[int, np.ndarray | None] = {}
     est_out = np.empty((N, n))
     traj = np.empty((K + 1, N, n)) if keep_trajectories else None
     truth = np.empty((K + 1, n)) if keep_trajectories else None
@@ -152,6 +204,9 @@ def simulate(
     for k in range(K + 1):
         y = plant.measure(k)
         view.k = k
+        for fusion, f, members in groups:  # first halves, then one fusion per group
+            vals = [nodes[i].estimator.begin(k, nodes[i].open_round(k)) for i in members]
+            fused_now.update(zip(members, fuse_batch(vals, fusion=fusion, f=f)))
         for i in order:
             node = nodes[i]
             if static:
@@ -159,7 +214,10 @@ def simulate(
             else:
                 r = exp.rows_at(i, k)
                 meas = None if r is None else y[r]
-            out = node.run_round(k, meas)
+            if i in in_batch:
+                out = node.estimator.finish(k, meas, fused_now.pop(i))
+            else:
+                out = node.run_round(k, meas)
             est_out[i] = node.estimate(out)
             msg = node.publish(k, out) if node.strategy is not None else out
             deliver(node, k, msg, targets[i])

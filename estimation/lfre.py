@@ -57,7 +57,7 @@ from .modal import ModalForm, modal_form
 from .patrols import Patrol, PatrolSchedule
 from .robustness import Medag, build_medag
 from .switched_observer import AgentObservers, design_agent_observers, observer_step, source_sets
-from .trimmed_mean import FUSIONS, fuse, fuse_block
+from .trimmed_mean import FUSIONS, fuse
 
 
 @dataclass(frozen=True, eq=False)
@@ -222,24 +222,26 @@ class _ModalFusion:
         self._obs = des.agents[agent]
         self._sched = des.schedules[agent]
         self._lam = des.modal.lam
-        # fused modes ordered by their MEDAG neighbour set: each group is a slice of F
-        # whose modes share the same columns (in-neighbours), fused in one sorted block
-        groups: dict[tuple[int, ...], list[int]] = {}
-        for j in des.fused[agent]:
-            groups.setdefault(des.medags[int(j)].neighbours[agent], []).append(int(j))
+        # the fused modes F and, per mode, which neighbours are in its MEDAG N_i^(j):
+        # member[a, c] <=> neighbour nb[c] feeds mode F[a] (every mode fused in one call)
+        F = [int(j) for j in des.fused[agent]]
+        groups: dict[tuple[int, ...], list[int]] = {}  # modes by MEDAG neighbour set
+        for a, j in enumerate(F):
+            groups.setdefault(des.medags[j].neighbours[agent], []).append(a)
         nb = sorted({l for key in groups for l in key})
         self._nb = np.array(nb, dtype=int)
         self._col = {l: c for c, l in enumerate(nb)}
-        F, self._groups = [], []
-        for key, modes in groups.items():
-            self._groups.append((slice(len(F), len(F) + len(modes)), np.array([self._col[l] for l in key], dtype=int)))
-            F.extend(modes)
         self._F = np.array(F, dtype=int)
+        member = np.zeros((len(F), len(nb)), dtype=bool)
+        for key, rows in groups.items():
+            member[np.ix_(rows, [self._col[l] for l in key])] = True
+        self._member = member
         self._lamF = self._lam[self._F]
         self._need = 1 if fusion == "average" else 2 * self.f + 1
         self._z = np.zeros(n) if z0 is None else np.array(z0, dtype=float).reshape(n)
         self._v = self._z[self._obs_modes_flat()].copy()
         self._k: int | None = None
+        self._open: np.ndarray | None = None  # z_hat[k] before fusion, between begin and finish
         self._loc: int | None = None
         self._y: np.ndarray | None = None
         self.rejected = 0  # messages skipped for a wrong shape
@@ -267,10 +269,7 @@ class _ModalFusion:
     @property
     def estimate(self) -> np.ndarray:
         """``x_hat_i[k] = V z_hat_i[k]``, shape ``(n,)`` (a new array)."""
-        eye = self.__dict__.get("_V_is_eye")
-        if eye is None:
-            V = self.design.modal.V
-            eye = self.__dict__["_V_is_eye"] = bool(np.array_equal(V, np.eye(V.shape[0])))
+        eye = self.design.modal.is_identity
         return self._z.copy() if eye else self.design.modal.V @ self._z
 
     @property
@@ -291,7 +290,22 @@ class _ModalFusion:
         return ok
 
     def step(self, k: int, measurement: np.ndarray | None, inbox: Inbox) -> np.ndarray:
-        """Advance to round ``k``; return the payload ``z_hat_i[k]`` ``(n,)`` stamped ``k``."""
+        """Advance to round ``k``; return the payload ``z_hat_i[k]`` ``(n,)`` stamped ``k``.
+
+        The same as :meth:`begin`, :func:`~estimation.trimmed_mean.fuse` of what it
+        returns, then :meth:`finish` (a batched driver fuses many agents in one call)."""
+        values = self.begin(k, inbox)
+        got = None if values is None else fuse(values, fusion=self.fusion, f=self.f)
+        return self.finish(k, measurement, got)
+
+    def begin(self, k: int, inbox: Inbox) -> np.ndarray | None:
+        """First half of :meth:`step`: the observers (7)-(8) and the open-loop prediction.
+
+        Returns the values to fuse, ``(F, d)``: row ``a`` holds mode ``F[a]``'s values
+        from the ``d`` senders, NaN where a sender is missing or not in the mode's MEDAG;
+        or None when there is nothing to fuse this round. Hand :func:`fuse` of it (or None)
+        to :meth:`finish`."""
+        self._open = None
         if self._k is not None:
             if k <= self._k:
                 raise ValueError(f"agent {self.agent}: round {k} after round {self._k}; rounds must increase")
@@ -302,11 +316,24 @@ class _ModalFusion:
             self._v = v
             z = (self._lam if gap == 1 else self._lam**gap) * self._z
             z[self._obs.observed] = v[self._obs.owner]
-            if self._F.size:
-                z[self._F] = self._fused(k, inbox, z_prev=self._z[self._F], gap=gap)
-            self._z = z
-        elif self._sliding:
+            if not self._F.size:
+                self._z = z
+                return None
+            self._open = z
+            return self._fusion_input(k, inbox)
+        if self._sliding:
             self._remember(k, inbox)
+        return None
+
+    def finish(self, k: int, measurement: np.ndarray | None, fused: np.ndarray | None) -> np.ndarray:
+        """Second half of :meth:`step`: ``fused`` (the fusion of :meth:`begin`'s values,
+        ``(F,)``, NaN where too few) enters ``z_hat[k]``; the measurement is stored."""
+        z = self._open
+        if z is not None:
+            self._open = None
+            if fused is not None:
+                self._fusion_output(z, fused)
+            self._z = z
         self._k = k
         self._take_measurement(k, measurement)
         return self._z.copy()
@@ -324,7 +351,10 @@ class _ModalFusion:
             raise ValueError(f"agent {self.agent}: location {loc} gives {rows} value(s), got shape {np.shape(measurement)}")
         self._loc, self._y = loc, y.copy()
 
-    def _fused(self, k: int, inbox: Inbox, *, z_prev: np.ndarray, gap: int) -> np.ndarray:
+    def _fusion_input(self, k: int, inbox: Inbox) -> np.ndarray | None:
+        raise NotImplementedError
+
+    def _fusion_output(self, z: np.ndarray, got: np.ndarray) -> None:
         raise NotImplementedError
 
     def _gather(self, inbox: Inbox, *, stamp: int | None = None) -> tuple[list[int], list[int], list[np.ndarray]]:
@@ -370,20 +400,17 @@ class LFRE(_ModalFusion):
     z0 : (n,) array, optional  initial modal estimate (default 0)
     """
 
-    def _fused(self, k: int, inbox: Inbox, *, z_prev: np.ndarray, gap: int) -> np.ndarray:
+    def _fusion_input(self, k: int, inbox: Inbox) -> np.ndarray | None:
+        # the open loop (22) is already in z; fuse only messages stamped k - 1
         cols, _, rows = self._gather(inbox, stamp=k - 1)
-        out = (self._lamF if gap == 1 else self._lamF**gap) * z_prev  # eq. (22), open loop
         if len(rows) < self._need:
-            return out
-        fresh = np.zeros(self._nb.size, dtype=bool)
-        fresh[cols] = True
-        buf = np.empty((self._nb.size, self._F.size))
-        buf[cols] = np.asarray(rows, dtype=float)[:, self._F]
-        for sl, gc in self._groups:
-            pc = gc[fresh[gc]]
-            if pc.size >= self._need:  # eq. (21)
-                out[sl] = self._lamF[sl] * fuse_block(buf[pc, sl], fusion=self.fusion, f=self.f)
-        return out
+            return None
+        vals = np.asarray(rows, dtype=float)[:, self._F].T  # (F, d) from the d fresh senders
+        return np.where(self._member[:, cols], vals, np.nan)
+
+    def _fusion_output(self, z: np.ndarray, got: np.ndarray) -> None:
+        ok = ~np.isnan(got)  # at least 2f + 1 fresh MEDAG neighbours: eq. (21)
+        z[self._F[ok]] = self._lamF[ok] * got[ok]
 
 
 class SWLFRE(_ModalFusion):
@@ -396,20 +423,20 @@ class SWLFRE(_ModalFusion):
 
     _sliding = True
 
-    def _fused(self, k: int, inbox: Inbox, *, z_prev: np.ndarray, gap: int) -> np.ndarray:
+    def _fusion_input(self, k: int, inbox: Inbox) -> np.ndarray:
         self._remember(k, inbox)
         delay = (k - 1) - self._mem_stamp
-        out = np.empty(self._F.size)
-        for sl, gc in self._groups:
-            block = self._mem_val[gc, sl]
-            d = delay[gc]
-            if d.max() > 0:  # step 1: zbar = lambda^tau z_hat_l[k - 1 - tau]
-                with np.errstate(over="ignore", invalid="ignore"):
-                    block = block * self._lamF[sl] ** d[:, None]
-                if not np.all(np.isfinite(block)):
-                    block = np.nan_to_num(block, nan=0.0, posinf=np.inf, neginf=-np.inf)
-            out[sl] = self._lamF[sl] * fuse_block(block, fusion=self.fusion, f=self.f)  # eq. (14)
-        return out
+        block = self._mem_val  # (d, F): the newest value of every neighbour (0 before its first)
+        if delay.max() > 0:  # step 1: zbar = lambda^tau z_hat_l[k - 1 - tau]
+            with np.errstate(over="ignore", invalid="ignore"):
+                block = block * self._lamF ** delay[:, None]
+            if not np.all(np.isfinite(block)):
+                block = np.nan_to_num(block, nan=0.0, posinf=np.inf, neginf=-np.inf)
+        # every MEDAG neighbour contributes, so each mode has r >= 2f + 1 values
+        return np.where(self._member, block.T, np.nan)
+
+    def _fusion_output(self, z: np.ndarray, got: np.ndarray) -> None:
+        z[self._F] = self._lamF * got  # eq. (14)
 
 
 RULES = {"lfre": (LFRE, "trimmed"), "sw_lfre": (SWLFRE, "trimmed"), "median": (SWLFRE, "median"), "average": (LFRE, "average")}

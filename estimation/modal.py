@@ -28,6 +28,8 @@ a diagonal ``A`` keeps its state order (``V = I``).
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -70,6 +72,12 @@ class ModalForm:
     def n(self) -> int:
         return int(self.lam.shape[0])
 
+    @functools.cached_property
+    def is_identity(self) -> bool:
+        """Whether ``V`` is the identity (the state is already modal: ``x = z``); computed once."""
+        V = self.V
+        return V.shape[0] == V.shape[1] and bool(np.all(V.diagonal() == 1.0)) and int(np.count_nonzero(V)) == V.shape[0]
+
     @property
     def spectral_radius(self) -> float:
         """``rho(A)``, used by the MSS condition (23)."""
@@ -84,8 +92,15 @@ class ModalForm:
         return np.asarray(z, dtype=float) @ self.V.T
 
     def modal_rows(self, C: np.ndarray) -> np.ndarray:
-        """``C~ = C V`` of eq. (4): measurement rows ``(r, n)`` in modal coordinates."""
-        return np.atleast_2d(np.asarray(C, dtype=float)) @ self.V
+        """``C~ = C V`` of eq. (4): measurement rows ``(r, n)`` in modal coordinates.
+
+        Only the states a row reads enter the product (a sensing location reads a few
+        states of a large plant: ``O(r s n)`` for ``s`` read states instead of ``O(r n^2)``)."""
+        C = np.atleast_2d(np.asarray(C, dtype=float))
+        cols = np.flatnonzero(np.any(C != 0, axis=0))
+        if self.is_identity:
+            return C.copy()
+        return C[:, cols] @ self.V[cols, :]
 
 
 def decoupled_blocks(A: np.ndarray) -> tuple[np.ndarray, ...]:

@@ -33,6 +33,7 @@ from itertools import combinations
 from typing import Iterable, Sequence
 
 import numpy as np
+from scipy.sparse import csr_matrix
 
 from .errors import DesignError
 
@@ -66,8 +67,9 @@ def peel(Adj: np.ndarray, sources: Iterable[int], *, r: int) -> tuple[list[list[
         raise DesignError(f"robustness level r must be >= 1, got {r}")
     inside = _sources(sources, A.shape[0])
     levels = [[int(i) for i in np.flatnonzero(inside)]]
+    As = csr_matrix(A)  # O(edges) per level: large sparse teams have many levels
     while True:
-        new = (~inside) & (A @ inside.astype(np.int64) >= r)
+        new = (~inside) & (As @ inside.astype(np.int64) >= r)
         if not np.any(new):
             break
         levels.append([int(i) for i in np.flatnonzero(new)])

@@ -86,7 +86,12 @@ def trimmed_mean(
         keep = (rank >= f) & (rank < (count - f)[..., None])
         short_rows = count < 2 * f + 1
         den = np.where(short_rows, 1, keep.sum(axis=-1))
-        out = np.where(keep, vs, 0.0).sum(axis=-1) / den
+        kept = np.where(keep, vs, 0.0)
+        # a running sum in sorted order: trailing padding (NaN columns of a batch of rows
+        # with fewer senders) adds exact zeros, so a row's result never depends on the
+        # width of the batch it is fused in (numpy's pairwise .sum() regroups with width)
+        total = np.cumsum(kept, axis=-1)[..., -1] if d else np.zeros(kept.shape[:-1])
+        out = total / den
         out = _short(out, short_rows, short, 2 * f + 1, "trimmed_mean")
         return float(out) if out.ndim == 0 else out
     order = np.argsort(v, axis=-1, kind="stable")
