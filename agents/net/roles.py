@@ -347,14 +347,15 @@ class PlantProcess(Role):
             p, m = got
             to, stamps = m.arrays["to"], m.arrays["stamps"]
             allowed = self.out_ids.get(p.sender)
-            if (allowed is None or to.size > len(allowed) or stamps.size != to.size
-                    or not all(float(t).is_integer() and int(t) in allowed for t in to)
-                    or not all(float(s).is_integer() and 0 <= s < 2**53 for s in stamps)):
+            tl, sl = to.tolist(), stamps.tolist()
+            if (allowed is None or len(tl) > len(allowed) or len(sl) != len(tl)
+                    or not all(t.is_integer() and int(t) in allowed for t in tl)
+                    or not all(s.is_integer() and 0 <= s < 2**53 for s in sl)):
                 self.rejects.add(p.sender, "range")
                 return
             rnd = self.done.get(m.stamp)
             if rnd is not None:
-                rnd[p.sender] = [(int(t), int(s)) for t, s in zip(to, stamps)]
+                rnd[p.sender] = [(int(t), int(s)) for t, s in zip(tl, sl)]
         elif "/ctl/ready/" in key:
             got = self.decode(key, payload, self.wire.ctl)
             if got is not None and got[0].sender in self.ids:
@@ -539,7 +540,12 @@ class NetworkView:
         """Every agent the view needs reported round ``k`` and its round-``k`` messages to
         my out-neighbours arrived (agents that are not alive are not waited for)."""
         done = self.done.get(k, {})
+        bcast = self.bcast
         for s in self.needed:
+            if (s, k) in bcast:
+                # a broadcast round-k estimate: an agent either broadcasts or addresses its
+                # messages in a round, never both, so nothing else of s is to come
+                continue
             d = done.get(s)
             if d is None:
                 if alive(s):
