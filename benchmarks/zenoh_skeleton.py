@@ -11,6 +11,12 @@ padding after), nothing is decoded and nothing is estimated::
                                                             in-neighbour's est k-1)
     monitor <- truth, done
 
+A Byzantine agent of the scenario sends addressed messages (``est/{i}/{j}``, one per
+out-neighbour) as the runtime's Byzantine middleware does, and an omniscient one (the
+cancellation attack) also hears what the runtime's adversary hears (the estimates and
+done reports of the agents its view needs, the addressed messages to its out-neighbours)
+and holds its round-``k`` messages until those agents' round-``k`` estimates arrived.
+
 Usage: ``python -m benchmarks.zenoh_skeleton [N] [ROUNDS]`` (a ring of N agents, n = 6),
 or :func:`run_skeleton` with :func:`sizes_for` of a built experiment.
 """
@@ -39,6 +45,10 @@ class Sizes:
     truth: int
     est: int
     done: tuple[int, ...]
+    #: per agent: its out-neighbours when it sends addressed messages (a Byzantine agent), else ()
+    addressed: tuple[tuple[int, ...], ...] = ()
+    #: per agent: the agents whose round-k estimates an omniscient adversary waits for, else ()
+    needed: tuple[tuple[int, ...], ...] = ()
 
 
 def sizes_for(exp: Any) -> Sizes:
@@ -58,7 +68,12 @@ def sizes_for(exp: Any) -> Sizes:
     est = len(encode(Message(kind="est", sender=ids[0], stamp=123456, arrays={"x": x})))
     done = tuple(len(encode(Message(kind="done", sender=ids[i], stamp=123456, arrays={"x": x, "to": np.ones(len(outs[i]))})))
                  for i in range(exp.N))
-    return Sizes(tuple(ids), tuple(ins), meas, truth, est, done)
+    from agents.net.roles import NetworkView, reads_view
+
+    addressed = tuple(tuple(outs[i]) if exp.strategies.get(i) is not None else () for i in range(exp.N))
+    needed = tuple(tuple(NetworkView(exp, ids[i], None, uses={}).needed) if reads_view(exp.strategies.get(i)) else ()
+                   for i in range(exp.N))
+    return Sizes(tuple(ids), tuple(ins), meas, truth, est, done, addressed, needed)
 
 
 def ring_sizes(N: int, n: int = 6) -> Sizes:
@@ -127,15 +142,25 @@ async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: 
         else:
             me = ids[idx]
             ins = sizes.in_ids[idx]
+            addressed = sizes.addressed[idx] if sizes.addressed else ()
+            needed = set(sizes.needed[idx]) if sizes.needed else set()
             bus.subscribe(keys.plant_loc(me), q)
-            for j in ins:
+            for j in sorted(set(ins) | needed):
                 bus.subscribe(keys.est(j), q)
+            bus.subscribe(keys.est_pattern(to=me), q)
+            if needed:  # the omniscient adversary's subscriptions
+                for j in addressed:
+                    bus.subscribe(keys.est_pattern(to=j), q)
+                for j in sorted(needed):
+                    bus.subscribe(keys.ctl("done", j), q)
             bus.watch(keys.alive_pattern(), q)
             bus.announce(keys.alive("agent", me))
             need = {"plant", "monitor"} | {str(j) for j in ins}
             seen: set[str] = set()
             est_key, done_key = keys.est(me), keys.ctl("done", me)
             arrived: dict[int, int] = {}
+            heard: dict[int, set[int]] = {}  # round -> needed agents whose estimate arrived
+            addr_keys = [keys.est(me, j) for j in addressed]
             meas_k: int | None = None
             sent_ready = False
             while True:
@@ -155,11 +180,23 @@ async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: 
                     if k < 0:
                         break
                     meas_k = k
-                else:
-                    arrived[k] = arrived.get(k, 0) + 1
-                if meas_k is not None and (meas_k == 0 or arrived.get(meas_k - 1, 0) >= len(ins)):
+                elif "/ctl/done/" not in key:
+                    parts = key.split("/")
+                    sender = int(parts[-2] if parts[-1] == "est" else parts[-3])
+                    to_me = parts[-1] == "est" or int(parts[-1]) == me
+                    if to_me and sender in ins:
+                        arrived[k] = arrived.get(k, 0) + 1
+                    if sender in needed:
+                        heard.setdefault(k, set()).add(sender)
+                if (meas_k is not None and (meas_k == 0 or arrived.get(meas_k - 1, 0) >= len(ins))
+                        and needed <= heard.get(meas_k, set())):
                     arrived.pop(meas_k - 1, None)
-                    bus.publish(est_key, _payload(sizes.est, meas_k))
+                    heard.pop(meas_k, None)
+                    if addressed:
+                        for ak in addr_keys:
+                            bus.publish(ak, _payload(sizes.est, meas_k))
+                    else:
+                        bus.publish(est_key, _payload(sizes.est, meas_k))
                     bus.publish(done_key, _payload(sizes.done[idx], meas_k))
                     meas_k = None
     finally:

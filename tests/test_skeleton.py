@@ -1,0 +1,33 @@
+"""The bare Zenoh skeleton of `rse bench run` reproduces the scenario's message pattern."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from agents.cli import load_experiment  # noqa: E402
+from benchmarks.zenoh_skeleton import run_skeleton, sizes_for  # noqa: E402
+
+
+def test_sizes_carry_the_adversarys_pattern() -> None:
+    exp, _ = load_experiment(ROOT / "scenarios" / "mitra_cells.toml", ("run.rounds=10", "expect=[]"), None)
+    sz = sizes_for(exp)
+    (b,) = exp.byzantine  # agent 5, the cancellation attack
+    outs = tuple(exp.agent_ids[j] for j in exp.out_neighbours(b))
+    assert sz.addressed[b] == outs and len(outs) > 1
+    assert sz.needed[b] and exp.agent_ids[b] not in sz.needed[b]
+    assert all(not sz.addressed[i] and not sz.needed[i] for i in range(exp.N) if i != b)
+    # the encoded sizes are the runtime's: an estimate of n = 80 floats is at least 640 bytes
+    assert sz.est >= 8 * exp.n
+
+
+@pytest.mark.multiprocess
+def test_skeleton_runs_with_an_omniscient_adversary() -> None:
+    exp, _ = load_experiment(ROOT / "scenarios" / "mitra_cells.toml", ("run.rounds=10", "expect=[]"), None)
+    res = run_skeleton(sizes_for(exp), rounds=30, timeout=50.0)
+    assert res["rounds"] == 30 and res["rounds_per_s"] > 0
