@@ -65,3 +65,35 @@ def test_router_config_file_listen_endpoints_are_used(procs, tmp_path):
     p.terminate()
     so, se = p.communicate(timeout=10)
     assert p.returncode == 0, se
+
+
+def test_a_monitor_that_hears_the_team_late_still_records_the_first_rounds():
+    """Through a loaded router a late monitor can get the tokens already present (plant,
+    agents) after the first rounds' truth and done reports: those rounds wait for the
+    team instead of closing empty (every estimate recorded)."""
+    import numpy as np
+
+    from agents.cli import load_experiment
+    from agents.net.roles import MonitorProcess, RunConfig, _msg
+    from tests.conftest import SCENARIOS
+    from transport.codec import PLANT_ID
+    from transport.keys import Keys
+    from transport.zenoh_bus import InMemoryHub
+
+    exp, _ = load_experiment(SCENARIOS / "lee_kim_shim.toml", ("run.dt=0.01", "run.duration=1", "output.window=[0.5, 1.0]", "expect=[]"), None)
+    keys = Keys("late")
+    mon = MonitorProcess(exp, InMemoryHub().bus(), keys, RunConfig(save_estimates=True))
+    empty = np.zeros(0)
+    for k in range(3):
+        mon.handle((keys.plant_truth(), _msg("truth", PLANT_ID, k, {"x": np.full(exp.n, float(k))})))
+        for a in exp.agent_ids:
+            mon.handle((keys.ctl("done", a), _msg("done", a, k, {"x": np.full(exp.n, k + a / 10), "to": empty,
+                                                                  "stamps": empty})))
+    assert mon.next_k == 0  # nothing closed before the monitor knows the team
+    mon.handle((keys.alive("plant", 0), True))
+    for a in exp.agent_ids:
+        mon.handle((keys.alive("agent", a), True))
+    mon.handle((keys.plant_truth(), _msg("truth", PLANT_ID, 3, {"x": np.zeros(exp.n)})))
+    assert mon.next_k == 3
+    assert not np.isnan(mon.traj[:3]).any()
+    np.testing.assert_array_equal(mon.traj[2, :, 0], [2 + a / 10 for a in exp.agent_ids])

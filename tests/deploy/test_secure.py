@@ -152,12 +152,12 @@ def test_an_agent_cannot_speak_for_another_agent_or_the_plant(net):
         a2.put(f"rse/{RUN}/agent/2/est", b"own")
         a2.put(f"rse/{RUN}/ctl/done/2", b"own")
 
-    ok = _until(lambda: (f"rse/{RUN}/agent/2/est", b"own") in heard and (f"rse/{RUN}/ctl/done/2", b"own") in heard_mon,
-                10, send)
+    ok = _until(lambda: (f"rse/{RUN}/agent/2/est", b"own") in heard and (f"rse/{RUN}/ctl/done/2", b"own") in heard_mon
+                and f"rse/{RUN}/alive/agent/2" in tokens, 10, send)
     for _ in range(5):
         send()
     time.sleep(0.3)
-    assert ok, (heard, heard_mon)
+    assert ok, (heard, heard_mon, tokens)
     assert not [k for k, v in heard + heard_mon if v == b"forged"], (heard, heard_mon)
     assert f"rse/{RUN}/alive/agent/2" in tokens and f"rse/{RUN}/alive/agent/3" not in tokens, tokens
 
