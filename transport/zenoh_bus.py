@@ -3,6 +3,8 @@
 A role (plant, agent, monitor) needs five things from the network::
 
     bus.publish(key, payload)          # bytes out on a key expression
+    bus.publish(key, payload, droppable=True)   # ... that may be dropped for a receiver
+                                       # that cannot take it now (realtime data)
     bus.subscribe(pattern, queue)      # (key, bytes) items into an asyncio.Queue
     bus.watch(pattern, queue)          # liveliness: (key, True) on join, (key, False) on leave,
                                        # the tokens already present are reported at once
@@ -15,8 +17,14 @@ role can feed both into one queue and tell them apart by type.
 :class:`ZenohBus` wraps an open ``zenoh.Session`` (see :mod:`transport.zenoh_session`;
 the session's owner closes it) and delivers through the one bridge
 (:func:`transport.bridge.make_bridge`). Publishers are declared once per key, reliable
-and with congestion control ``BLOCK`` (a lockstep run must not lose messages to a full
-transmit queue) and ``express`` (no batching delay: a round is a chain of small messages).
+and ``express`` (no batching delay: a round is a chain of small messages), with congestion
+control ``BLOCK`` (a lockstep run must not lose messages to a full transmit queue), or
+``DROP`` for the ``droppable`` messages (a realtime run's measurements and estimates). The
+congestion control travels with each message: a router forwarding a ``BLOCK`` message
+to a client that cannot take it (its link down, its queue full) holds up that
+publisher's messages to everyone until the client's lease expires, so one unreachable
+agent would stall a whole realtime team; a ``DROP`` message is dropped for that client
+alone (``tests/deploy/test_netns.py``).
 
 :class:`InMemoryHub` / :class:`InMemoryBus` implement the same interface inside one event
 loop, with Zenoh's ``*`` / ``**`` key matching; the in-process tests of the roles use it.
@@ -40,7 +48,7 @@ class Bus:
 
     stats: BridgeStats
 
-    def publish(self, key: str, payload: bytes) -> None:  # pragma: no cover - interface
+    def publish(self, key: str, payload: bytes, *, droppable: bool = False) -> None:  # pragma: no cover - interface
         raise NotImplementedError
 
     def subscribe(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:  # pragma: no cover
@@ -66,21 +74,21 @@ class ZenohBus(Bus):
         self.session = session
         self.loop = loop or asyncio.get_running_loop()
         self.stats = BridgeStats()
-        self._publishers: dict[str, Any] = {}
+        self._publishers: dict[tuple[str, bool], Any] = {}
         self._subscribers: list[Any] = []
         self._tokens: list[Any] = []
         self._closed = False
 
-    def publish(self, key: str, payload: bytes) -> None:
+    def publish(self, key: str, payload: bytes, *, droppable: bool = False) -> None:
         if self._closed:
             return
-        pub = self._publishers.get(key)
+        pub = self._publishers.get((key, droppable))
         if pub is None:
             z = self._zenoh
-            pub = self.session.declare_publisher(
-                key, congestion_control=z.CongestionControl.BLOCK, express=True, reliability=z.Reliability.RELIABLE
-            )
-            self._publishers[key] = pub
+            cc = z.CongestionControl.DROP if droppable else z.CongestionControl.BLOCK
+            pub = self.session.declare_publisher(key, congestion_control=cc, express=True,
+                                                 reliability=z.Reliability.RELIABLE)
+            self._publishers[(key, droppable)] = pub
         pub.put(payload)
 
     def subscribe(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:
@@ -177,7 +185,7 @@ class InMemoryBus(Bus):
         self._tokens: list[str] = []
         self._closed = False
 
-    def publish(self, key: str, payload: bytes) -> None:
+    def publish(self, key: str, payload: bytes, *, droppable: bool = False) -> None:
         if self._closed:
             return
         self.hub.published += 1

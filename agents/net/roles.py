@@ -419,12 +419,14 @@ class PlantProcess(Role):
             y = plant.measure(k)
             bus.publish(truth_key, _msg("truth", PLANT_ID, k, {"x": plant.x}))
             waits = self._wait_lists(prev) if lockstep else {}
+            # realtime: a measurement an agent cannot take now is dropped for it alone
+            # (an unreachable agent must not hold up the others' measurements)
             for i, aid in enumerate(ids):
                 rows = exp.agent_rows[i] if static else exp.rows_at(i, k)
                 meas = empty if rows is None else y[rows]
                 member = aid in self.members
                 bus.publish(loc_keys[aid], _msg("meas", PLANT_ID, k, {"y": meas, "wait": waits.get(aid, nowait) if member else nowait},
-                                                meta={"member": member, "nomeas": rows is None}))
+                                                meta={"member": member, "nomeas": rows is None}), droppable=not lockstep)
             if lockstep:
                 expected = set(self.members)
                 rnd = self.done[k]
@@ -788,6 +790,7 @@ class AgentProcess(Role):
         own = self._own_estimate(out) if self._own_estimate is not None else out
         msg = node.publish(k, out) if node.strategy is not None else out
         aid = self.id
+        drop = self.cfg.mode == "realtime"  # an estimate a neighbour cannot take now is dropped for it alone
         try:
             if k < self.silent_until:  # warming up after a late join: listen only
                 to, stamps = [], []
@@ -799,11 +802,12 @@ class AgentProcess(Role):
                         continue
                     stamp = getattr(payload, "stamp", k)
                     value = getattr(payload, "value", payload)
-                    bus.publish(self.keys.est(aid, tgt), _msg("est", aid, int(stamp), {"x": value}, receiver=tgt))
+                    bus.publish(self.keys.est(aid, tgt), _msg("est", aid, int(stamp), {"x": value}, receiver=tgt),
+                                droppable=drop)
                     to.append(tgt)
                     stamps.append(int(stamp))
             else:
-                bus.publish(self._est_key, _msg("est", aid, k, {"x": msg}))
+                bus.publish(self._est_key, _msg("est", aid, k, {"x": msg}), droppable=drop)
                 to, stamps = self.out_ids, [k] * len(self.out_ids)
         except MessageError as exc:  # a non-finite estimate cannot go on the wire
             log.warning("agent %d: round %d message not sent: %s", aid, k, exc)
