@@ -22,9 +22,9 @@ control ``BLOCK`` (a lockstep run must not lose messages to a full transmit queu
 ``DROP`` for the ``droppable`` messages (a realtime run's measurements and estimates). The
 congestion control travels with each message: a router forwarding a ``BLOCK`` message
 to a client that cannot take it (its link down, its queue full) holds up that
-publisher's messages to everyone until the client's lease expires, so one unreachable
-agent would stall a whole realtime team; a ``DROP`` message is dropped for that client
-alone (``tests/deploy/test_netns.py``).
+publisher's messages to everyone until the link is back or the client's lease (10 s)
+expires, so one unreachable agent would stall a whole realtime team; a ``DROP`` message
+is dropped for that client alone (``tests/deploy/test_netns.py``).
 
 :class:`InMemoryHub` / :class:`InMemoryBus` implement the same interface inside one event
 loop, with Zenoh's ``*`` / ``**`` key matching; the in-process tests of the roles use it.
