@@ -28,3 +28,16 @@ def rse(*args: str, timeout: float = 300, cwd: Path | None = None, env: dict | N
 @pytest.fixture
 def run_rse():
     return rse
+
+
+@pytest.fixture
+def procs():
+    """Real ``rse`` processes started by a test (:class:`tests.procs.Procs`), all killed at
+    its end whatever happened."""
+    from tests.procs import Procs
+
+    ps = Procs()
+    try:
+        yield ps
+    finally:
+        ps.kill_all()

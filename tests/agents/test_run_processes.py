@@ -7,9 +7,7 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
-import subprocess
 import sys
 import textwrap
 import time
@@ -22,7 +20,8 @@ import pytest
 
 from agents.cli import load_experiment
 from agents.simulate import simulate
-from tests.conftest import ROOT, SCENARIOS
+from tests.conftest import SCENARIOS
+from tests.procs import child_env, rse_cmd
 
 pytestmark = pytest.mark.multiprocess
 
@@ -32,49 +31,7 @@ SHORT = ("--set", "run.dt=0.01", "--set", "run.duration=12", "--set", "output.wi
          "--set", "expect.1.max=1.0")
 
 
-def _cmd(*args: str) -> list[str]:
-    exe = shutil.which("rse")
-    return [exe, *args] if exe else [sys.executable, "-c", "from agents.cli import main; main()", *args]
-
-
-def _env() -> dict:
-    e = dict(os.environ)
-    e.pop("RSE_DEBUG", None)
-    e["COLUMNS"] = "200"
-    return e
-
-
-class Procs:
-    """Processes started by a test, each in its own process group; all killed at the end."""
-
-    def __init__(self) -> None:
-        self.procs: list[subprocess.Popen] = []
-
-    def start(self, args: list[str], **kw) -> subprocess.Popen:
-        p = subprocess.Popen(args, cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                             start_new_session=True, **kw)
-        self.procs.append(p)
-        return p
-
-    def kill_all(self) -> None:
-        for p in self.procs:
-            try:
-                os.killpg(p.pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
-            try:
-                p.communicate(timeout=5)
-            except Exception:
-                pass
-
-
-@pytest.fixture
-def procs():
-    ps = Procs()
-    try:
-        yield ps
-    finally:
-        ps.kill_all()
+_cmd, _env = rse_cmd, child_env  # the procs fixture (tests/conftest.py) kills what they start
 
 
 def _wait_file(path: Path, timeout: float) -> dict:
