@@ -97,9 +97,9 @@ class ModalForm:
         Only the states a row reads enter the product (a sensing location reads a few
         states of a large plant: ``O(r s n)`` for ``s`` read states instead of ``O(r n^2)``)."""
         C = np.atleast_2d(np.asarray(C, dtype=float))
-        cols = np.flatnonzero(np.any(C != 0, axis=0))
         if self.is_identity:
             return C.copy()
+        cols = np.flatnonzero(np.any(C != 0, axis=0))
         return C[:, cols] @ self.V[cols, :]
 
 

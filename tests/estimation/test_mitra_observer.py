@@ -39,6 +39,26 @@ def test_modal_form_round_trip_and_errors():
         modal_form(np.array([[1.0, 0.5], [0.0, 2.0]]), blocks=[[0], [1]])
 
 
+def test_modal_rows_reads_only_the_measured_states():
+    # a non-trivial modal basis: C V from the read columns equals the dense product
+    rng = np.random.default_rng(4)
+    T = rng.normal(size=(7, 7))
+    A = T @ np.diag([0.3, 0.5, 0.7, 0.9, 1.1, 1.2, 1.4]) @ np.linalg.inv(T)  # real, distinct
+    m = modal_form(A)
+    C = np.zeros((2, 7))
+    C[0, 2], C[1, 5], C[1, 6] = 1.0, -0.5, 2.0
+    np.testing.assert_allclose(m.modal_rows(C), C @ m.V, rtol=1e-13, atol=1e-13)
+    assert not m.is_identity
+    # a diagonal plant is already modal: rows are returned as they are (a copy)
+    d = modal_form(np.diag([0.5, 1.1, 1.2]))
+    assert d.is_identity
+    c = np.array([[0.0, 1.0, 0.0]])
+    out = d.modal_rows(c)
+    np.testing.assert_array_equal(out, c @ d.V)
+    out[0, 0] = 9.0
+    assert c[0, 0] == 0.0
+
+
 def test_cells_model():
     m = cells(4, np.random.default_rng(0))
     assert m.A.shape == (80, 80) and len(m.loc_C) == 40
