@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from estimation.cells import cells, diffusion
@@ -101,6 +101,7 @@ def test_diffusion_model():
     st.booleans(),
     st.integers(0, 2**31),
 )
+@example(lam=[0.6394458901993607, 0.75, 0.640625, 1.0], period=1, rows=1, target=0.125, deadbeat=False, seed=0)
 def test_sampled_error_matrix_is_schur(lam, period, rows, target, deadbeat, seed):
     lam = np.array(lam)
     spread = np.abs(lam[:, None] ** period - lam[None, :] ** period) + np.eye(lam.size)
@@ -109,14 +110,17 @@ def test_sampled_error_matrix_is_schur(lam, period, rows, target, deadbeat, seed
     C = np.random.default_rng(seed).uniform(0.5, 2.0, (rows, lam.size))
     L, moved = sampled_gain(lam, C, period, target=target, deadbeat=deadbeat)
     M = sampled_error_matrix(lam, C, L, period)
-    ev = np.linalg.eigvals(M)
+    ev, vecs = np.linalg.eig(M)
+    # the computed eigenvalues of a placed pole set are only as exact as their condition:
+    # modes 1e-3 apart give eigenvector condition numbers near 1e9 (errors of about 1e-5)
+    tol = 1e-6 + 1e-12 * np.linalg.cond(vecs)
     assert np.max(np.abs(ev)) < 1.0
     # modes below the target are left alone: zero gain row, eigenvalue lambda^T kept
     assert np.all(L[~moved] == 0)
     for q in np.flatnonzero(~moved):
         assert np.min(np.abs(ev - lam[q] ** period)) < 1e-9
     if moved.any() and not deadbeat:
-        assert np.max(np.abs(ev)) <= max(target, np.max(np.abs(lam[~moved] ** period), initial=0)) + 1e-6
+        assert np.max(np.abs(ev)) <= max(target, np.max(np.abs(lam[~moved] ** period), initial=0)) + tol
     if deadbeat and moved.all():
         Mp = np.linalg.matrix_power(M, lam.size)
         assert np.max(np.abs(Mp)) < 1e-8 * max(1.0, np.max(np.abs(M)) ** lam.size)
