@@ -63,3 +63,17 @@ class Condition:
     name: str
     holds: bool | None  # None: a figure, not a pass/fail condition
     detail: str
+
+
+def checked_design(exp: Any, design: Any, label: str) -> tuple[Any, list[Condition]]:
+    """The design ``rse check`` reports on: the experiment's own, else ``design(exp,
+    check=True)``. A design that fails is one failed condition named ``label``:
+    returns ``(None, [that condition])``, else ``(design, [])``."""
+    from estimation.errors import ScenarioError
+
+    if exp.design is not None:
+        return exp.design, []
+    try:
+        return design(exp, check=True), []
+    except ScenarioError as exc:
+        return None, [Condition(label, False, exc.detail)]

@@ -16,7 +16,7 @@ from estimation.mss import effective_erasure_probability, max_erasure_probabilit
 from estimation.patrols import Patrol
 from estimation.robustness import strong_robustness
 
-from ..common import STREAM_MAP, Condition, PlantModel, rng_for
+from ..common import STREAM_MAP, Condition, PlantModel, checked_design, rng_for
 from ..types import Strict
 
 if TYPE_CHECKING:
@@ -114,14 +114,9 @@ def make_estimator(exp: "Experiment", i: int):
 def conditions(exp: "Experiment") -> list[Condition]:
     """Source sets, strong robustness, MEDAG levels per block, and Theorem 2's MSS test."""
     est = exp.scenario.estimator
-    out: list[Condition] = []
-    des = exp.design
+    des, out = checked_design(exp, design, "MEDAG for every mode (Definition 2, Lemma 2)")
     if des is None:
-        try:
-            des = design(exp, check=True)
-        except ScenarioError as exc:
-            out.append(Condition("MEDAG for every mode (Definition 2, Lemma 2)", False, exc.detail))
-            return out
+        return out
     ids = exp.agent_ids
     names = [b for b in exp.blocks if b != "x"] or ["x"]
     r_min = np.inf

@@ -46,7 +46,7 @@ from estimation.lti import ContinuousLTI, zoh
 from estimation.ugrinovskii import UgrinovskiiBaseline, UgrinovskiiNode, first_order_attack_model
 from estimation.ugrinovskii_example import PAPER_GAMMA2, PAPER_GAMMA2_BAR, example_problem, plant_matrix
 
-from ..common import STREAM_AGENT_X0, STREAM_ESTIMATOR, STREAM_PLANT_NOISE, Condition, PlantModel, rng_for
+from ..common import STREAM_AGENT_X0, STREAM_ESTIMATOR, STREAM_PLANT_NOISE, Condition, PlantModel, checked_design, rng_for
 from ..types import Init, Matrix, Strict, ZeroInit
 
 if TYPE_CHECKING:
@@ -355,7 +355,7 @@ _MEMO_SIZE = 8
 
 def _matrix_opt(rows: Matrix | None, default: np.ndarray, where: str, source: str, *, nrows: int | None = None,
                 cols: int | None = None) -> np.ndarray:
-    from ..build import _matrix, explicit_AB
+    from ..build import _matrix
 
     if rows is None:
         return default
@@ -726,15 +726,10 @@ def conditions(exp: "Experiment") -> list[Condition]:
     """gamma^2, gamma_bar^2 (with the paper's values for Section IV), the back-off, and
     the Riccati solutions over the horizon (positive definite and bounded)."""
     est = exp.scenario.estimator
-    out: list[Condition] = []
-    des = exp.design
+    des, out = checked_design(exp, design, "LMIs (34), (40), (52) feasible" if est.method == "lmi"
+                              else "closed-form design (footnote 3)")
     if des is None:
-        try:
-            des = design(exp, check=True)
-        except ScenarioError as exc:
-            out.append(Condition("LMIs (34), (40), (52) feasible" if est.method == "lmi" else "closed-form design (footnote 3)",
-                                 False, exc.detail))
-            return out
+        return out
     d = des.result
     g, gb = float(d["gamma2"]), float(d["gamma2_bar"])
     if est.method == "lmi":
