@@ -78,8 +78,9 @@ def write_manifest(run_dir: Path, exp: Experiment, frozen: dict, *, driver: str,
     })
 
 
-def write_metrics(run_dir: Path, exp: Experiment, mon: Monitor, regular: np.ndarray) -> None:
-    """Long format: one row per (round, agent, block)."""
+def metrics_table(exp: Experiment, mon: Monitor, regular: np.ndarray) -> pa.Table:
+    """The columns of ``metrics.parquet``, long format: one row per (round, agent, block):
+    ``k, t, agent, regular, block, error_2, error_inf, relative_error_2``."""
     K = mon.last_round + 1
     N, B = exp.N, len(mon.block_names)
     k = np.repeat(np.arange(K, dtype=np.int64), N * B)
@@ -97,7 +98,12 @@ def write_metrics(run_dir: Path, exp: Experiment, mon: Monitor, regular: np.ndar
         "error_inf": mon.error_inf[:K].reshape(-1),
         "relative_error_2": mon.relative_error_2[:K].reshape(-1),
     })
-    pq.write_table(table, run_dir / "metrics.parquet", compression="zstd")
+    return table
+
+
+def write_metrics(run_dir: Path, exp: Experiment, mon: Monitor, regular: np.ndarray) -> None:
+    """``metrics.parquet`` (:func:`metrics_table`), ``diagnostics.parquet`` and ``traces.parquet``."""
+    pq.write_table(metrics_table(exp, mon, regular), run_dir / "metrics.parquet", compression="zstd")
     write_diagnostics(run_dir, exp, mon)
     write_traces(run_dir, exp, mon)
 

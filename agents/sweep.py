@@ -28,6 +28,7 @@ from typing import Any, Callable
 import numpy as np
 
 from estimation.errors import RSEError, ScenarioError
+from scenarios.loader import toml_value
 
 
 def parse_grid(spec: str) -> tuple[str, list[Any]]:
@@ -55,14 +56,6 @@ def parse_grid(spec: str) -> tuple[str, list[Any]]:
     return key, [parse_value(v.strip()) for v in text.split(",") if v.strip()]
 
 
-def toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, str):
-        return json.dumps(v)
-    return json.dumps(v) if isinstance(v, (list, dict)) else repr(v)
-
-
 @dataclass(frozen=True)
 class Point:
     values: tuple[tuple[str, Any], ...]
@@ -84,23 +77,16 @@ def points(grid: list[tuple[str, list[Any]]], seeds: list[int]) -> list[Point]:
 
 def run_point(scenario: str, base_overrides: list[str], point: Point, out: str) -> dict[str, Any]:
     """Run one point in this (worker) process; write its files; return its table row."""
+    from agents import api
     from agents.rundir import write_json
-    from agents.simulate import simulate
-    from agents.summary import evaluate, summarise
-    from scenarios.build import build
-    from scenarios.loader import load
 
     d = Path(out)
     d.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     row: dict[str, Any] = {"point": point.id, "seed": point.seed, **{k: v for k, v in point.values}}
     try:
-        sc, _ = load(scenario, base_overrides + point.overrides)
-        exp = build(sc, source=scenario)
-        res = simulate(exp)
-        results = evaluate(exp, res.monitor, res.regular)
-        summary = summarise(exp, res.monitor, res.regular, res.links)
-        summary["expectations"] = [r.as_dict() for r in results]
+        res = api.simulate(api.load(scenario, set=base_overrides + point.overrides))
+        results, summary = res.expectations(), res.summary()
         write_json(d / "summary.json", summary)
         w = summary["worst_regular"].get("x", {})
         row.update({f"worst_{k}": (None if v is None else float(v)) for k, v in w.items()})

@@ -65,7 +65,7 @@ def measure_run(processes: int, rounds: int, *, deadline: float = 2.0, skeleton:
     BenchmarkError
         If the run fails or writes no performance figures.
     """
-    from agents.cli import load_experiment
+    from agents.api import load_experiment
     from agents.net.launcher import launch
     from agents.net.roles import RunConfig
 

@@ -16,26 +16,26 @@ written); 2 bad input (options, a ``--compare`` / ``--load`` file); 130 interrup
 from __future__ import annotations
 
 import os
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable
 
-# As the rse command does: one BLAS thread per process (tiny matrices, many processes).
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import click
+from rich.console import Console
 
-import sys  # noqa: E402
-import time  # noqa: E402
-from dataclasses import dataclass, field, replace  # noqa: E402
-from datetime import datetime, timezone  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Any, Callable  # noqa: E402
+from agents.api import pin_blas_threads
+from estimation.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED
 
-import click  # noqa: E402
-from rich.console import Console  # noqa: E402
+from .report import BenchmarkError, Figure, git_info, machine_info, read_document, result_document, table, write_document
 
-from .report import (BenchmarkError, Figure, git_info, machine_info, read_document, result_document,  # noqa: E402
-                     table, write_document)
+# As the rse command does: one BLAS thread per process (tiny matrices, many processes); numpy
+# is not imported yet (agents.api and estimation.errors import nothing heavy).
+pin_blas_threads()
 
 SECTIONS = ("simulate", "run", "memory", "sweep")
-EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 out = Console(highlight=False)
 err = Console(stderr=True, highlight=False)

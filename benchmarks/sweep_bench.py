@@ -28,7 +28,7 @@ def measure_sweep(drop_ps: list[float], seeds: int, rounds: int, jobs: int) -> d
     BenchmarkError
         If a point of the sweep fails.
     """
-    from agents.cli import load_experiment
+    from agents.api import load_experiment
     from agents.sweep import run_sweep
 
     overrides = [f"run.rounds={rounds}", "expect=[]"]

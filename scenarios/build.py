@@ -60,6 +60,10 @@ class Experiment:
     patrols: list[Patrol | None] = field(default_factory=list)  # per agent (None: static)
     schedules: list[PatrolSchedule | None] = field(default_factory=list)
     cell_of_location: np.ndarray | None = None
+    #: the validated scenario as plain data (what ``manifest.json`` freezes) and the
+    #: overrides it was loaded with (``KEY=VALUE`` strings, ``run.seed`` included)
+    frozen: dict = field(default_factory=dict)
+    overrides: tuple[str, ...] = ()
 
     # ------------------------------------------------------------------ derived
     @property

@@ -8,6 +8,7 @@ Every error is a :class:`~estimation.errors.ScenarioError` whose message names t
 from __future__ import annotations
 
 import copy
+import json
 import tomllib
 from pathlib import Path
 from typing import Any, Iterable
@@ -28,6 +29,19 @@ def parse_value(text: str) -> Any:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         return text
+
+
+def toml_value(v: Any) -> str:
+    """A Python value as the TOML text :func:`parse_value` reads back (``--set KEY=VALUE``)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple, dict)):
+        return json.dumps(v, default=float)
+    if isinstance(v, int) or (hasattr(v, "dtype") and getattr(v.dtype, "kind", "") in "iu"):
+        return str(int(v))
+    return repr(float(v))
 
 
 def apply_override(data: dict, assignment: str) -> None:

@@ -103,7 +103,7 @@ def test_compare_prints_the_ratio_per_figure(quick, tmp_path):
 
 
 def test_fused_values_per_round_counts_in_neighbour_messages_times_n():
-    from agents.cli import load_experiment
+    from agents.api import load_experiment
 
     exp, _ = load_experiment(SCENARIOS / "mitra_cells.toml", sim_bench.team_overrides(16, 2), None)
     assert (exp.N, exp.n) == (16, 80)
@@ -126,7 +126,7 @@ def test_simulator_team_sizes_are_multiples_of_a_cell():
 
 @pytest.mark.parametrize("procs", sorted(run_bench.TEAMS))
 def test_every_run_team_is_a_valid_design_with_that_many_agents(procs):
-    from agents.cli import load_experiment
+    from agents.api import load_experiment
 
     exp, _ = load_experiment(SCENARIOS / "mitra_cells.toml", run_bench.team_overrides(procs, 5), None)
     assert exp.N == procs

@@ -252,7 +252,7 @@ def test_flooding_reference_without_disturbance():
 def test_distributed_lockstep_over_the_bus_equals_the_simulator():
     """The protocol of ``rse run`` (in memory, one role per inverter): same estimates; the
     experiment and every agent's estimator pickle (they are shipped to the processes)."""
-    from agents.cli import load_experiment
+    from agents.api import load_experiment
     from agents.net.roles import RunConfig, run_team_in_memory
     from agents.simulate import make_channel, make_nodes
 

@@ -10,7 +10,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agents.cli import load_experiment  # noqa: E402
+from agents.api import load_experiment  # noqa: E402
 from benchmarks.zenoh_skeleton import run_skeleton, sizes_for  # noqa: E402
 
 

@@ -44,7 +44,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from estimation.errors import RSEError, ScenarioError, TransportError
+from estimation.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError,
+                               TransportError, describe, exit_status)
 
 from .roles import RunConfig
 
@@ -52,8 +53,6 @@ log = logging.getLogger("rse.net")
 
 STOP_GRACE_S = 1.0  # SIGTERM -> SIGKILL
 END_GRACE_S = 5.0  # after the monitor finished, how long the others may take to exit
-
-EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 
 @dataclass
@@ -222,7 +221,7 @@ def run_role(spec: ChildSpec) -> int:
 
             exp = pickle.loads(_blob(spec.experiment))
         else:
-            from agents.cli import load_experiment
+            from agents.api import load_experiment
 
             exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
         log.debug("scenario built")
@@ -238,21 +237,15 @@ def run_role(spec: ChildSpec) -> int:
         else:
             asyncio.run(_role_main(spec, exp))
         return EXIT_OK
-    except ScenarioError as exc:
-        error(f"{spec.label}: {exc}")
-        return EXIT_BAD_INPUT
-    except RSEError as exc:
-        error(f"{spec.label}: {exc}")
-        return EXIT_FAILED
     except (KeyboardInterrupt, asyncio.CancelledError):
         return EXIT_INTERRUPTED
-    except OSError as exc:
-        error(f"{spec.label}: {exc}")
-        return EXIT_FAILED
+    except (RSEError, OSError) as exc:
+        error(f"{spec.label}: {describe(exc)}")
+        return exit_status(exc)
     except Exception as exc:
         if os.environ.get("RSE_DEBUG"):
             raise
-        error(f"{spec.label}: internal error: {type(exc).__name__}: {exc} (set RSE_DEBUG=1 for the traceback)")
+        error(f"{spec.label}: {describe(exc)}")
         return EXIT_FAILED
 
 
@@ -387,7 +380,7 @@ def launch(
 
     say = say or (lambda msg: err.print(msg, soft_wrap=True))
     if exp is None:
-        from agents.cli import load_experiment
+        from agents.api import load_experiment
 
         exp, frozen = load_experiment(scenario, overrides, seed)
     run_id = run_id or safe_run_id(exp.scenario.run.name)

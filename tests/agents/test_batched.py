@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agents.cli import load_experiment
+from agents.api import load_experiment
 from agents.simulate import batch_groups, fuse_batch, make_channel, make_nodes, simulate
 from estimation.trimmed_mean import fuse
 

@@ -57,7 +57,7 @@ def test_report_table_is_the_same_for_both_drivers(tmp_path):
     protocol as `rse run`) reports the same table as one written by `rse simulate`."""
     import asyncio
 
-    from agents.cli import load_experiment
+    from agents.api import load_experiment
     from agents.net.roles import RunConfig, run_team_in_memory
     from agents.report import load_run, table_rows
     from agents.rundir import write_json, write_metrics

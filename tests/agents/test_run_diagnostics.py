@@ -3,7 +3,7 @@ simulator (the networked roles over the in-memory bus: the protocol of `rse run`
 
 import asyncio
 
-from agents.cli import load_experiment
+from agents.api import load_experiment
 from agents.net.roles import RunConfig, run_team_in_memory
 from agents.simulate import simulate
 from agents.summary import summarise

@@ -7,7 +7,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from agents.cli import load_experiment
+from agents.api import load_experiment
 from agents.net.roles import RunConfig, run_team_in_memory
 from agents.simulate import simulate
 from tests.conftest import SCENARIOS

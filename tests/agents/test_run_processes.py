@@ -18,7 +18,7 @@ import psutil
 import pyarrow.parquet as pq
 import pytest
 
-from agents.cli import load_experiment
+from agents.api import load_experiment
 from agents.simulate import simulate
 from tests.conftest import SCENARIOS
 from tests.procs import child_env, rse_cmd

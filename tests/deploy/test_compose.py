@@ -47,7 +47,7 @@ def load(path: Path) -> dict:
 
 
 def agent_ids(scenario: Path) -> list[int]:
-    from agents.cli import load_experiment
+    from agents.api import load_experiment
 
     exp, _ = load_experiment(scenario, (), None)
     return list(exp.agent_ids)

@@ -34,7 +34,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from agents.cli import load_experiment
+from agents.api import load_experiment
 from agents.simulate import simulate
 from tests.conftest import ROOT, SCENARIOS
 from tests.deploy.conftest import child_env, rse_cmd

@@ -73,7 +73,7 @@ def test_a_monitor_that_hears_the_team_late_still_records_the_first_rounds():
     team instead of closing empty (every estimate recorded)."""
     import numpy as np
 
-    from agents.cli import load_experiment
+    from agents.api import load_experiment
     from agents.net.roles import MonitorProcess, RunConfig, _msg
     from tests.conftest import SCENARIOS
     from transport.codec import PLANT_ID

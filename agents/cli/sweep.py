@@ -7,10 +7,10 @@ from pathlib import Path
 
 import click
 
-from .cli import _handle_errors, cli
+from .common import handle_errors
 
 
-@cli.command()
+@click.command()
 @click.argument("scenario", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--grid", "grid", multiple=True, metavar="KEY=V1,V2|START:STOP:STEP", required=True,
               help="A scenario key and its values (repeatable: the grid is the product).")
@@ -22,7 +22,7 @@ from .cli import _handle_errors, cli
               help="Sweep directory (default: runs/sweep-NAME). Re-running with the same directory resumes.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE", help="Override a key for every point.")
 @click.option("--png/--no-png", default=True, show_default=True, help="Write sweep.png (needs the plot extra).")
-@_handle_errors
+@handle_errors
 def sweep(scenario: Path, grid: tuple[str, ...], seeds: int, jobs: int, out: Path | None,
           overrides: tuple[str, ...], png: bool) -> None:
     """Run SCENARIO over a grid of overrides and seeds in parallel; resumable.
@@ -36,8 +36,8 @@ def sweep(scenario: Path, grid: tuple[str, ...], seeds: int, jobs: int, out: Pat
 
     from scenarios.loader import load
 
-    from .console import err, out as console
-    from .sweep import figure, run_sweep
+    from ..console import err, out as console
+    from ..sweep import figure, run_sweep
 
     sc, _ = load(scenario, list(overrides))
     out = out or Path("runs") / f"sweep-{sc.run.name}"

@@ -1,6 +1,6 @@
-"""The networked commands of ``rse``: ``run``, ``plant``, ``agent``, ``monitor``, ``bench run``.
+"""The networked commands of ``rse``: ``run``, ``plant``, ``agent``, ``monitor``.
 
-Registered on the click group of :mod:`agents.cli` (imported at its end). Exit statuses
+Added to the group in :mod:`agents.cli`. Exit statuses
 as there: 0 success, 1 failure (the message names the failed process), 2 bad input,
 3 an ``[expect]`` bound failed, 130 interrupted.
 """
@@ -16,8 +16,8 @@ import click
 
 from estimation.errors import ExpectationFailed, RSEError, ScenarioError
 
-from .cli import (EXIT_INTERRUPTED, _handle_errors, bench, cli, dashboard_options, load_experiment, rerun_options,
-                  scenario_options, wait_while_serving)
+from .common import (EXIT_INTERRUPTED, dashboard_options, handle_errors, load_experiment, rerun_options,
+                     scenario_options, secure_files, wait_while_serving)
 
 
 def _run_options(fn: Callable) -> Callable:
@@ -36,7 +36,7 @@ def _run_options(fn: Callable) -> Callable:
 
 def _config(mode: str, rate: float | None, deadline: float, startup_timeout: float, save_estimates: bool = False,
             warmup: float = 3.0):
-    from .net.roles import RunConfig
+    from ..net.roles import RunConfig
 
     try:
         return RunConfig(mode=mode, rate=rate, deadline=deadline, startup_timeout=startup_timeout,
@@ -55,8 +55,8 @@ def _endpoints(connect: tuple[str, ...]) -> tuple[str, ...]:
 
 
 def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
-    from .console import expectations_table, out as console, summary_table
-    from .summary import ExpectationResult
+    from ..console import expectations_table, out as console, summary_table
+    from ..summary import ExpectationResult
 
     if summary is None:
         return
@@ -79,7 +79,7 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
         raise ExpectationFailed(f"{len(failed)} of {len(results)} expectation(s) failed: " + "; ".join(r.label for r in failed))
 
 
-@cli.command()
+@click.command()
 @scenario_options
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Run directory (default: runs/NAME-TIMESTAMP).")
@@ -95,7 +95,7 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
 @click.option("--save-estimates", is_flag=True, help="Also write estimates.npy and truth.npy (every agent's estimate per round).")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
 @rerun_options
-@_handle_errors
+@handle_errors
 def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, mode: str, rate: float | None,
         deadline: float, startup_timeout: float, warmup: float, connect: tuple[str, ...], with_router: bool,
         secure: Path | None, run_id: str | None, save_estimates: bool, progress: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
@@ -111,8 +111,8 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
     """
     from transport.keys import validate_run_id
 
-    from .net.launcher import launch
-    from .rundir import default_run_dir
+    from ..net.launcher import launch
+    from ..rundir import default_run_dir
 
     cfg = _config(mode, rate, deadline, startup_timeout, save_estimates, warmup)
     eps = _endpoints(connect)
@@ -126,7 +126,7 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
     exp, frozen = load_experiment(scenario, overrides, seed)
     run_dir = out or default_run_dir(exp.scenario.run.name)
     dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
-    from .console import out as console
+    from ..console import out as console
 
     def title(summary: dict[str, Any]) -> str:
         return (f"{exp.scenario.run.name} (rse run, {mode}): {summary['rounds'] + 1} rounds, "
@@ -200,7 +200,7 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
     from transport.keys import validate_run_id
     from transport.zenoh_session import SessionOptions, normalize_endpoint, tcp_endpoint
 
-    from .net.launcher import ChildSpec, load_team, session_for
+    from ..net.launcher import ChildSpec, load_team, session_for
 
     ctx = click.get_current_context()
     data: dict[str, Any] = load_team(team) if team is not None else {}
@@ -228,8 +228,6 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
     secure = secure or (Path(data["secure"]) if data.get("secure") else None)
     if secure is not None:
         from transport.secure import identity_for, validate_identity
-
-        from .cli_deploy import secure_files
 
         try:
             me = validate_identity(identity) if identity else identity_for(role, extra.get("agent_id"))
@@ -279,7 +277,7 @@ def _client_options(eps: tuple[str, ...], tls: Any) -> Any:
 
 
 def _run_single(spec: Any) -> None:
-    from .net.launcher import run_role
+    from ..net.launcher import run_role
 
     code = run_role(spec)
     if code == EXIT_INTERRUPTED:
@@ -287,18 +285,18 @@ def _run_single(spec: Any) -> None:
     sys.exit(code)
 
 
-@cli.command()
+@click.command()
 @_role_options
-@_handle_errors
+@handle_errors
 def plant(**kw: Any) -> None:
     """Run the plant of SCENARIO in this process (one member of a team; see `rse run`)."""
     _run_single(_role_spec("plant", "plant", **kw))
 
 
-@cli.command()
+@click.command()
 @_role_options
 @click.option("--id", "agent_id", type=int, required=True, help="The agent's id (1-based, as in the scenario).")
-@_handle_errors
+@handle_errors
 def agent(agent_id: int, **kw: Any) -> None:
     """Run agent --id I of SCENARIO in this process; joins (or rejoins) a running team.
 
@@ -321,12 +319,12 @@ def agent(agent_id: int, **kw: Any) -> None:
     _run_single(spec)
 
 
-@cli.command()
+@click.command()
 @_role_options
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Where to write metrics and summary.")
 @click.option("--save-estimates", is_flag=True, help="Also write estimates.npy and truth.npy.")
 @rerun_options
-@_handle_errors
+@handle_errors
 def monitor(out: Path, save_estimates: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
             web_port: int | None, grpc_port: int | None, **kw: Any) -> None:
     """Run the monitor of SCENARIO in this process: writes metrics.parquet, summary.json and
@@ -345,7 +343,7 @@ class _UrlPrinter:
     """The monitor's progress channel when it runs alone: prints the dashboard's URLs."""
 
     def send(self, item: tuple[str, Any]) -> None:
-        from .console import out as console
+        from ..console import out as console
 
         kind, data = item
         if kind == "urls":
@@ -354,56 +352,3 @@ class _UrlPrinter:
         elif kind == "serving" and data.get("web"):
             console.print(f"the run is finished; still serving the recording at {data['web']} (Ctrl-C to stop)",
                           soft_wrap=True)
-
-
-# ----------------------------------------------------------------------- bench
-
-
-@bench.command("run")
-@scenario_options
-@click.option("--deadline", type=click.FloatRange(min=0.001), default=2.0, show_default=True, help="Lockstep deadline.")
-@click.option("--skeleton/--no-skeleton", default=True, show_default=True,
-              help="Also time the bare Zenoh lockstep skeleton (same processes and message sizes, no estimation).")
-@_handle_errors
-def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, deadline: float, skeleton: bool) -> None:
-    """Lockstep rounds/s of `rse run` on SCENARIO, next to the bare Zenoh skeleton's, and peak RSS per agent."""
-    import os
-    import platform
-    import statistics
-    import tempfile
-
-    from .console import out as console
-    from .net.launcher import launch
-    from .net.roles import RunConfig
-
-    exp, frozen = load_experiment(scenario, overrides, seed)
-    with tempfile.TemporaryDirectory(prefix="rse-bench-") as tmp:
-        res = launch(scenario, overrides, seed, Path(tmp) / "run", RunConfig(deadline=deadline), progress=False,
-                     exp=exp, frozen=frozen, say=lambda m: None)
-    if res.status != 0 or res.summary is None:
-        raise RSEError("; ".join(res.failures) or "the benchmark run failed")
-    perf = res.summary["performance"]
-    rss = [rec.get("maxrss_mb", float("nan")) for who, rec in res.summary["processes"].items() if who.startswith("agent")]
-    rate = perf["rounds_per_s"]
-    console.print(f"scenario {exp.scenario.run.name}: {exp.N} agents, {perf['rounds']} rounds, n = {exp.n}, "
-                  f"{exp.N + 2} processes")
-    console.print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-                  f"Python {platform.python_version()}, {platform.system()} {platform.release()}")
-    line = f"rse run lockstep:      {rate:10,.0f} rounds/s  ({rate * exp.N:,.0f} agent-rounds/s)"
-    console.print(line)
-    if skeleton:
-        root = str(Path(__file__).resolve().parents[1])  # benchmarks/ lives next to agents/
-        if root not in sys.path:
-            sys.path.insert(0, root)
-        try:
-            from benchmarks.zenoh_skeleton import run_skeleton, sizes_for
-        except ImportError:
-            raise RSEError("the skeleton benchmark (benchmarks/zenoh_skeleton.py) is not available in this "
-                           "installation; run from a source checkout or use --no-skeleton") from None
-
-        sk = run_skeleton(sizes_for(exp), rounds=perf["rounds"])
-        console.print(f"bare Zenoh skeleton:   {sk['rounds_per_s']:10,.0f} rounds/s  (same processes and message sizes)")
-        console.print(f"runtime / skeleton:    {rate / sk['rounds_per_s']:10.0%}  (target >= 50%)")
-    console.print(f"peak RSS per agent process: max {max(rss):.0f} MB, median {statistics.median(rss):.0f} MB "
-                  f"(target <= 150 MB); plant {res.summary['processes'].get('plant', {}).get('maxrss_mb', float('nan')):.0f} MB, "
-                  f"monitor {res.summary['processes']['monitor']['maxrss_mb']:.0f} MB")

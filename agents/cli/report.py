@@ -6,15 +6,15 @@ from pathlib import Path
 
 import click
 
-from .cli import _handle_errors, cli
+from .common import handle_errors
 
 
-@cli.command()
+@click.command()
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.argument("other", type=click.Path(path_type=Path), required=False)
 @click.option("--png", "png_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Write static figures (errors.png, state_NAME.png, compare.png) into this directory (needs the plot extra).")
-@_handle_errors
+@handle_errors
 def report(run_dir: Path, other: Path | None, png_dir: Path | None) -> None:
     """Print the summary table of RUN_DIR (and compare it with OTHER when given).
 
@@ -22,8 +22,8 @@ def report(run_dir: Path, other: Path | None, png_dir: Path | None) -> None:
     output window, the convergence round, detected attacks and the in-link counters. It is
     read from the run directory only, so runs of `rse simulate` and `rse run` report alike.
     """
-    from .console import out
-    from .report import compare_table, figure_compare, figure_errors, figure_states, load_run, report_table
+    from ..console import out
+    from ..report import compare_table, figure_compare, figure_errors, figure_states, load_run, report_table
 
     a = load_run(run_dir)
     out.print(report_table(a))

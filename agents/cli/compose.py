@@ -1,6 +1,6 @@
 """``rse compose``: a docker-compose file running a scenario's team in containers.
 
-Registered on the click group of :mod:`agents.cli` (imported at its end). Exit statuses
+Added to the group in :mod:`agents.cli`. Exit statuses
 as there: 0 success, 1 failure (e.g. the file cannot be written), 2 bad input (scenario,
 ``--set``, ``--run-id``, ``--image``, missing credentials under ``--secure``).
 """
@@ -14,12 +14,12 @@ import click
 
 from estimation.errors import ScenarioError
 
-from .cli import _handle_errors, cli, scenario_options, load_experiment
+from .common import handle_errors, load_experiment, scenario_options
 
 _IMAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@-]*\Z")
 
 
-@cli.command()
+@click.command()
 @scenario_options
 @click.option("-o", "--output", "output", default="docker-compose.yml", show_default=True, metavar="FILE",
               help="Where to write the compose file ('-': standard output; host paths are then relative to the "
@@ -33,7 +33,7 @@ _IMAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@-]*\Z")
 @click.option("--secure", type=click.Path(path_type=Path), default=None, metavar="DIR",
               help="Credentials written by `rse certs DIR --scenario SCENARIO`: mutual TLS and the router's "
                    "access control; each service mounts only ca.pem and its own certificate and key.")
-@_handle_errors
+@handle_errors
 def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output: str, image: str | None,
             run_id: str | None, secure: Path | None) -> None:
     """Write a docker-compose file running SCENARIO as a team of containers.
@@ -46,7 +46,7 @@ def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output
     """
     from transport.keys import validate_run_id
 
-    from .compose import DEFAULT_IMAGE, GRPC_PORT, WEB_PORT, command_line, compose_spec, default_run_id, render
+    from ..compose import DEFAULT_IMAGE, GRPC_PORT, WEB_PORT, command_line, compose_spec, default_run_id, render
 
     image = image if image is not None else DEFAULT_IMAGE
     if not _IMAGE_RE.match(image):

@@ -1,6 +1,6 @@
 """The deployment commands of ``rse``: ``router`` (a Zenoh router) and ``certs`` (TLS identities).
 
-Registered on the click group of :mod:`agents.cli` (imported at its end). Exit statuses
+Added to the group in :mod:`agents.cli`. Exit statuses
 as there: 0 success (``rse router`` also after Ctrl-C / SIGTERM), 1 failure, 2 bad input.
 """
 
@@ -12,21 +12,10 @@ import click
 
 from estimation.errors import ScenarioError
 
-from .cli import _handle_errors, cli
+from .common import handle_errors, secure_files
 
 
-def secure_files(directory: Path, identity: str):
-    """:class:`transport.secure.TlsFiles` of ``identity`` in ``directory``; a missing or
-    unreadable file is a :class:`ScenarioError` (exit status 2) naming it."""
-    from transport.secure import tls_files
-
-    try:
-        return tls_files(directory, identity)
-    except ValueError as exc:
-        raise ScenarioError(str(exc)) from None
-
-
-@cli.command()
+@click.command()
 @click.option("--listen", multiple=True, metavar="tcp/HOST:PORT",
               help="Endpoint to listen on (repeatable; port 0: a free port). Default: the --config file's, "
                    "else tcp/0.0.0.0:7447 (every interface, as a container needs; tcp/127.0.0.1:7447 for this host only).")
@@ -36,7 +25,7 @@ def secure_files(directory: Path, identity: str):
               help="TLS with mutual authentication and access control, certificates from `rse certs DIR` "
                    "(ca.pem, router.pem, router.key; the agents admitted are those of DIR/agent-I.pem).")
 @click.option("--run-id", default=None, help="With --secure: admit this run only (default: any run).")
-@_handle_errors
+@handle_errors
 def router(listen: tuple[str, ...], config_file: Path | None, secure: Path | None, run_id: str | None) -> None:
     """Run a Zenoh router in this process until Ctrl-C / SIGTERM.
 
@@ -44,7 +33,7 @@ def router(listen: tuple[str, ...], config_file: Path | None, secure: Path | Non
     `rse agent --id 3 SCENARIO --run-id RUN --client --connect tcp/ROUTER_HOST:7447`.
     Scouting is off (clients name the router). Prints the endpoints it listens on.
     """
-    from .net.router import router_config, serve
+    from ..net.router import router_config, serve
 
     files = secure_files(secure, "router") if secure is not None else None
     if run_id is not None and files is None:
@@ -60,7 +49,7 @@ def router(listen: tuple[str, ...], config_file: Path | None, secure: Path | Non
     click.echo("rse router: stopped")
 
 
-@cli.command()
+@click.command()
 @click.argument("directory", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--scenario", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="One certificate per agent of this scenario (its agent ids).")
@@ -71,7 +60,7 @@ def router(listen: tuple[str, ...], config_file: Path | None, secure: Path | Non
                    "router. Always valid: localhost, 127.0.0.1, ::1 and the identity (router: the compose service).")
 @click.option("--days", type=click.IntRange(1, 36500), default=365, show_default=True, help="Validity.")
 @click.option("--force", is_flag=True, help="Replace an existing set in DIRECTORY (a new CA: every file changes).")
-@_handle_errors
+@handle_errors
 def certs(directory: Path, scenario: Path | None, agents: int | None, hosts: tuple[str, ...], days: int,
           force: bool) -> None:
     """Write a CA and one TLS certificate and key per process to DIRECTORY (for --secure).
@@ -83,7 +72,7 @@ def certs(directory: Path, scenario: Path | None, agents: int | None, hosts: tup
     if (scenario is None) == (agents is None):
         raise ScenarioError("give exactly one of --scenario SCENARIO or --agents N")
     if scenario is not None:
-        from .cli import load_experiment
+        from .common import load_experiment
 
         exp, _ = load_experiment(scenario, (), None, check_conditions=False)
         ids = list(exp.agent_ids)

@@ -1,0 +1,5 @@
+"""``python -m agents.cli``: the same as ``rse``."""
+
+from . import main
+
+main()

@@ -1,0 +1,109 @@
+"""What every ``rse`` command shares: the error handling (one-line messages and exit
+statuses, :mod:`estimation.errors`), the common flags and the scenario loader.
+
+Command modules import from here, never from the group module (:mod:`agents.cli`).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+import click
+
+from estimation.errors import (EXIT_BAD_INPUT, EXIT_EXPECTATION, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError,
+                               ScenarioError, describe, exit_status)
+
+from ..api import load_experiment
+
+__all__ = [
+    "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT", "EXIT_EXPECTATION", "EXIT_INTERRUPTED",
+    "handle_errors", "scenario_options", "rerun_options", "dashboard_options", "wait_while_serving",
+    "load_experiment", "secure_files",
+]
+
+
+def handle_errors(fn: Callable) -> Callable:
+    """Turn the runtime's own errors into a one-line message and an exit status
+    (:func:`estimation.errors.exit_status`); a bug is an internal error, its traceback only
+    with ``RSE_DEBUG=1``."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from ..console import error
+
+        try:
+            return fn(*args, **kwargs)
+        except (RSEError, KeyboardInterrupt, OSError) as exc:
+            error(describe(exc))
+            sys.exit(exit_status(exc))
+        except Exception as exc:  # a bug: say so plainly, traceback only on request
+            if os.environ.get("RSE_DEBUG"):
+                raise
+            error(describe(exc))
+            sys.exit(EXIT_FAILED)
+
+    return wrapper
+
+
+def scenario_options(fn: Callable) -> Callable:
+    """The flags every scenario-taking sub-command shares."""
+    fn = click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE",
+                      help="Override any scenario key (TOML value), e.g. --set estimator.kappa=5. Repeatable.")(fn)
+    fn = click.option("--seed", type=click.IntRange(min=0), default=None, help="Override run.seed.")(fn)
+    fn = click.argument("scenario", type=click.Path(dir_okay=False, path_type=Path))(fn)
+    return fn
+
+
+def rerun_options(fn: Callable) -> Callable:
+    """The Rerun sink flags every run command shares."""
+    fn = click.option("--grpc-port", type=click.IntRange(1, 65535), default=None,
+                      help="Port of the gRPC server the web viewer reads from (default 9876).")(fn)
+    fn = click.option("--web-port", type=click.IntRange(1, 65535), default=None,
+                      help="Port of the web viewer (default 9090).")(fn)
+    fn = click.option("--serve-web", is_flag=True, help="Serve the web viewer so a browser (also on another machine) can watch live; the URL is printed.")(fn)
+    fn = click.option("--viewer", is_flag=True, help="Spawn the native Rerun viewer (needs a display).")(fn)
+    fn = click.option("--no-rerun", is_flag=True, help="No Rerun output at all (benchmarks).")(fn)
+    fn = click.option("--rrd", type=click.Path(dir_okay=False, path_type=Path), default=None,
+                      help="Recording file (default: recording.rrd in the run directory).")(fn)
+    return fn
+
+
+def dashboard_options(run_dir: Path, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
+                      web_port: int | None, grpc_port: int | None):
+    from ..dashboard import DashboardOptions
+
+    if no_rerun:
+        if viewer or serve_web or rrd:
+            raise ScenarioError("--no-rerun cannot be combined with --rrd, --viewer or --serve-web", source="command line")
+        return None
+    return DashboardOptions(rrd=rrd or run_dir / "recording.rrd", viewer=viewer, serve_web=serve_web,
+                            web_port=web_port, grpc_port=grpc_port)
+
+
+def wait_while_serving(url: str) -> None:
+    """After a run with --serve-web: keep the viewer up until Ctrl-C / SIGTERM."""
+    import signal
+    import threading
+
+    from ..console import out as console
+
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    console.print(f"the run is finished; still serving the recording at {url} (Ctrl-C to stop)")
+    done.wait()
+
+
+def secure_files(directory: Path, identity: str):
+    """:class:`transport.secure.TlsFiles` of ``identity`` in ``directory``; a missing or
+    unreadable file is a :class:`ScenarioError` (exit status 2) naming it."""
+    from transport.secure import tls_files
+
+    try:
+        return tls_files(directory, identity)
+    except ValueError as exc:
+        raise ScenarioError(str(exc)) from None

@@ -1,0 +1,97 @@
+"""``rse simulate`` and ``rse check``: the in-process simulator and the paper's conditions."""
+
+from __future__ import annotations
+
+import sys
+import uuid
+from pathlib import Path
+
+import click
+
+from estimation.errors import EXIT_FAILED, EXIT_OK, ExpectationFailed
+
+from .. import api
+from .common import dashboard_options, handle_errors, load_experiment, rerun_options, scenario_options, wait_while_serving
+
+
+@click.command()
+@scenario_options
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Run directory (default: runs/NAME-TIMESTAMP).")
+@click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
+@rerun_options
+@handle_errors
+def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, progress: bool,
+             rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool, web_port: int | None,
+             grpc_port: int | None) -> None:
+    """Run SCENARIO in the in-process lockstep simulator and write a run directory.
+
+    Writes manifest.json, design.json, metrics.parquet, summary.json and the Rerun
+    recording recording.rrd, prints the summary table and each [expect] bound with its
+    measured value.
+    """
+    from ..console import expectations_table, out as console, round_progress, summary_table
+    from ..rundir import default_run_dir, write_design, write_manifest
+
+    exp, frozen = load_experiment(scenario, overrides, seed)
+    run_dir = out or default_run_dir(exp.scenario.run.name)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    run_id = uuid.uuid4().hex[:12]
+    write_manifest(run_dir, exp, frozen, driver="simulate", run_id=run_id)
+    write_design(run_dir, exp)
+    dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
+    dash = None
+    if dopts is not None:
+        from ..dashboard import Dashboard
+
+        dash = Dashboard(exp, run_id=run_id, options=dopts)
+        for what, url in dopts.urls.items():
+            console.print(f"rerun {what}: {url}")
+    try:
+        with round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress) as update:
+            res = api.simulate(exp, progress=update, dashboard=dash)
+    except BaseException:
+        if dash is not None:
+            dash.close()
+        raise
+    if dash is not None:
+        dash.flush()  # the recording file is complete; a served viewer stays up below
+    results = res.expectations()
+    summary = res.summary()
+    res.save(run_dir, run_id=run_id)
+    console.print(summary_table(summary, title=f"{exp.scenario.run.name}: {res.sim.rounds} rounds, window t in [{exp.window[0]:g}, {exp.window[1]:g}]"))
+    if results:
+        console.print(expectations_table(results))
+    console.print(f"run directory: {run_dir}")
+    failed = [r for r in results if not r.ok]
+    if dash is not None:
+        try:
+            if dopts.serve_web:
+                wait_while_serving(dopts.urls.get("web", ""))
+        finally:
+            dash.close()
+    if failed:
+        raise ExpectationFailed(f"{len(failed)} of {len(results)} expectation(s) failed: " + "; ".join(r.label for r in failed))
+
+
+@click.command()
+@scenario_options
+@handle_errors
+def check(scenario: Path, overrides: tuple[str, ...], seed: int | None) -> None:
+    """Print the paper conditions for SCENARIO and whether they hold (exit 1 if one fails)."""
+    from rich.table import Table
+
+    from ..console import out as console
+
+    exp = api.load(scenario, set=list(overrides), seed=seed, check_conditions=False)
+    table = Table(title=f"{exp.scenario.run.name}: conditions", title_justify="left")
+    table.add_column("")
+    table.add_column("condition")
+    table.add_column("value / detail")
+    ok = True
+    for c in api.check(exp):
+        mark = "" if c.holds is None else ("[green]holds" if c.holds else "[red]FAILS")
+        ok = ok and c.holds is not False
+        table.add_row(mark, c.name, c.detail)
+    console.print(table)
+    sys.exit(EXIT_OK if ok else EXIT_FAILED)
