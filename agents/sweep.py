@@ -19,9 +19,7 @@ import json
 import math
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Callable
 
@@ -140,18 +138,15 @@ def run_sweep(scenario: Path, grid_specs: list[str], *, seeds: int, jobs: int, o
     if progress:
         progress(done, len(pts))
     if todo:
-        with ProcessPoolExecutor(max_workers=max(1, jobs), mp_context=get_context("spawn")) as pool:
-            futs = [pool.submit(run_point, str(scenario), overrides, p, str(out / "points" / p.id)) for p in todo]
-            try:
-                for fut in as_completed(futs):
-                    rows.append(fut.result())
-                    done += 1
-                    if progress:
-                        progress(done, len(pts))
-            except BaseException:
-                for f in futs:
-                    f.cancel()
-                raise
+        from .executor import open_executor
+
+        tasks = [(str(scenario), overrides, p, str(out / "points" / p.id)) for p in todo]
+        with open_executor(jobs) as ex:
+            for _, row in ex.map(run_point, tasks):
+                rows.append(row)
+                done += 1
+                if progress:
+                    progress(done, len(pts))
     write_table(out, rows, [k for k, _ in grid])
     return rows
 
