@@ -17,7 +17,6 @@ import hashlib
 import itertools
 import json
 import math
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -75,7 +74,7 @@ def points(grid: list[tuple[str, list[Any]]], seeds: list[int]) -> list[Point]:
 
 def run_point(scenario: str, base_overrides: list[str], point: Point, out: str) -> dict[str, Any]:
     """Run one point in this (worker) process; write its files; return its table row."""
-    from agents import api
+    from agents import runs
     from agents.rundir import write_json
 
     d = Path(out)
@@ -83,7 +82,7 @@ def run_point(scenario: str, base_overrides: list[str], point: Point, out: str) 
     t0 = time.perf_counter()
     row: dict[str, Any] = {"point": point.id, "seed": point.seed, **{k: v for k, v in point.values}}
     try:
-        res = api.simulate(api.load(scenario, set=base_overrides + point.overrides))
+        res = runs.simulate(runs.load(scenario, set=base_overrides + point.overrides))
         results, summary = res.expectations(), res.summary()
         write_json(d / "summary.json", summary)
         w = summary["worst_regular"].get("x", {})

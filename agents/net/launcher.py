@@ -47,6 +47,7 @@ from typing import Any
 from estimation.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError,
                                TransportError, describe, exit_status)
 
+from .parent import die_with_parent as _die_with_parent
 from .roles import RunConfig
 
 log = logging.getLogger("rse.net")
@@ -88,19 +89,6 @@ def safe_run_id(name: str) -> str:
 
 
 # ------------------------------------------------------------------------- child side
-
-
-def _die_with_parent() -> None:
-    """Linux: SIGTERM this process when its parent dies (no orphans)."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
-    except Exception:  # pragma: no cover - best effort
-        pass
 
 
 def _open(opts: Any) -> Any:
@@ -221,7 +209,7 @@ def run_role(spec: ChildSpec) -> int:
 
             exp = pickle.loads(_blob(spec.experiment))
         else:
-            from agents.api import load_experiment
+            from agents.runs import load_experiment
 
             exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
         log.debug("scenario built")
@@ -380,7 +368,7 @@ def launch(
 
     say = say or (lambda msg: err.print(msg, soft_wrap=True))
     if exp is None:
-        from agents.api import load_experiment
+        from agents.runs import load_experiment
 
         exp, frozen = load_experiment(scenario, overrides, seed)
     run_id = run_id or safe_run_id(exp.scenario.run.name)

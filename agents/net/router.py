@@ -208,9 +208,9 @@ def router_entry(config_args: dict[str, Any], ready: Any) -> None:
     from agents.console import error
     from estimation.errors import RSEError
 
-    from .launcher import _die_with_parent
+    from .parent import die_with_parent
 
-    _die_with_parent()
+    die_with_parent()
     code = 0
     try:
         conf, eps = router_config(**config_args)

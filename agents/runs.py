@@ -1,0 +1,187 @@
+"""The library's core for one run: load a scenario, simulate it, its result as data.
+
+:mod:`agents.api` is the public face of these functions (with the team driver and the
+sweeps); modules of the library itself (the sweeps, the team launcher) import them from
+here, so that the API module sits on top of what it re-exports.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
+
+if TYPE_CHECKING:  # pragma: no cover - imported lazily at run time (keeps `import rse` light)
+    import pandas as pd
+
+    from scenarios.build import Condition, Experiment
+
+    from .summary import ExpectationResult
+
+_BLAS_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def pin_blas_threads() -> None:
+    """One BLAS thread unless the user set otherwise (effective before numpy is imported,
+    and for every process started afterwards)."""
+    for var in _BLAS_VARS:
+        os.environ.setdefault(var, "1")
+
+
+def _override_strings(set: Mapping[str, Any] | Iterable[str] | None) -> list[str]:
+    """``{"run.dt": 0.01}`` or ``["run.dt=0.01"]`` -> ``["run.dt=0.01"]`` (TOML values)."""
+    if set is None:
+        return []
+    if isinstance(set, Mapping):
+        from scenarios.loader import toml_value
+
+        return [f"{k}={toml_value(v)}" for k, v in set.items()]
+    if isinstance(set, str):
+        return [set]
+    return [str(s) for s in set]
+
+
+def load(scenario: str | Path, *, set: Mapping[str, Any] | Iterable[str] | None = None, seed: int | None = None,
+         check_conditions: bool = True) -> Experiment:
+    """Load, validate and build a scenario file.
+
+    Parameters
+    ----------
+    scenario : path of a ``.toml`` scenario file
+    set : overrides of any key, as a mapping ``{"run.dt": 0.01}`` or ``KEY=VALUE`` strings
+        (TOML values, as ``rse --set``)
+    seed : overrides ``run.seed``
+    check_conditions : a run's assumptions (a connected graph, redundancy) are errors;
+        ``False`` builds anyway (as ``rse check`` does, to report them)
+
+    Returns the built :class:`~scenarios.build.Experiment` (offline design done once);
+    ``exp.frozen`` is the validated scenario as data, ``exp.overrides`` what was applied.
+    """
+    from scenarios.build import build
+    from scenarios.loader import load as load_scenario
+
+    ov = _override_strings(set) + ([f"run.seed={seed}"] if seed is not None else [])
+    sc, frozen = load_scenario(scenario, ov)
+    exp = build(sc, source=str(scenario), check_conditions=check_conditions)
+    exp.frozen = frozen
+    exp.overrides = tuple(ov)
+    return exp
+
+
+def load_experiment(scenario: str | Path, overrides: Iterable[str] = (), seed: int | None = None, *,
+                    check_conditions: bool = True) -> tuple[Experiment, dict]:
+    """:func:`load` with ``KEY=VALUE`` overrides, returning ``(experiment, frozen scenario)``."""
+    exp = load(scenario, set=list(overrides), seed=seed, check_conditions=check_conditions)
+    return exp, exp.frozen
+
+
+def check(exp: Experiment) -> list[Condition]:
+    """The conditions of the scenario's algorithm (what ``rse check`` prints), as data:
+    each has ``name``, ``holds`` (True, False, or None for information) and ``detail``."""
+    from scenarios.build import conditions
+
+    return conditions(exp)
+
+
+@dataclass
+class RunResult:
+    """The outcome of one run, from either driver.
+
+    ``summary()`` is ``summary.json``'s content, ``expectations()`` the scenario's
+    ``[[expect]]`` bounds with their measured values, ``metrics()`` the per-round errors as
+    a DataFrame (the columns of ``metrics.parquet``), ``save(dir)`` writes a run directory
+    (``manifest.json``, ``design.json``, ``metrics.parquet``, ``summary.json``).
+    """
+
+    experiment: Experiment | None  # None for a run directory opened without its experiment
+    summary_data: dict[str, Any]
+    expectation_results: list[ExpectationResult]
+    run_dir: Path | None = None
+    driver: str = "simulate"
+    sim: Any = field(default=None, repr=False)  # agents.simulate.SimResult of an in-process run
+
+    def summary(self) -> dict[str, Any]:
+        return self.summary_data
+
+    def expectations(self) -> list[ExpectationResult]:
+        return list(self.expectation_results)
+
+    @property
+    def ok(self) -> bool:
+        """Every evaluated ``[[expect]]`` bound held."""
+        return all(r.ok for r in self.expectation_results)
+
+    def metrics(self) -> pd.DataFrame:
+        """One row per (round, agent, state block): ``k, t, agent, regular, block, error_2,
+        error_inf, relative_error_2``."""
+        if self.sim is not None and self.experiment is not None:
+            from .rundir import metrics_table
+
+            return metrics_table(self.experiment, self.sim.monitor, self.sim.regular).to_pandas()
+        if self.run_dir is None:
+            raise ValueError("this result holds no metrics (no run directory)")
+        import pandas as pd
+
+        return pd.read_parquet(self.run_dir / "metrics.parquet")
+
+    def save(self, path: str | Path, *, run_id: str | None = None) -> Path:
+        """Write the run directory ``path`` (created); returns it."""
+        from .rundir import write_design, write_json, write_manifest, write_metrics
+
+        d = Path(path)
+        d.mkdir(parents=True, exist_ok=True)
+        if self.sim is None:
+            if self.run_dir is None or self.run_dir.resolve() != d.resolve():
+                raise ValueError("a team run's directory is written by the run itself (see run_dir)")
+            return d
+        exp = self.experiment
+        assert exp is not None  # an in-process result always holds its experiment
+        if not (d / "manifest.json").is_file():
+            write_manifest(d, exp, exp.frozen, driver=self.driver, run_id=run_id or uuid.uuid4().hex[:12])
+        write_design(d, exp)
+        write_metrics(d, exp, self.sim.monitor, self.sim.regular)
+        write_json(d / "summary.json", self.summary_data)
+        self.run_dir = d
+        return d
+
+
+def _summarise_sim(exp: Experiment, res: Any) -> tuple[dict[str, Any], list[ExpectationResult]]:
+    from .summary import evaluate, summarise
+
+    results = evaluate(exp, res.monitor, res.regular)
+    summary = summarise(exp, res.monitor, res.regular, res.links)
+    summary["expectations"] = [r.as_dict() for r in results]
+    summary["performance"] = {"elapsed_s": res.elapsed, "agent_rounds_per_s": res.agent_rounds_per_s}
+    return summary, results
+
+
+def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None = None, dashboard: Any = None,
+             batched: bool = True, keep_trajectories: bool = False) -> RunResult:
+    """Run ``exp`` in the in-process lockstep simulator (deterministic for its seed).
+
+    ``progress(k, worst_error)`` is called every 256 rounds; ``dashboard`` an
+    :class:`agents.dashboard.Dashboard` to stream to; ``keep_trajectories`` keeps every
+    estimate and the true state (``result.sim.estimates``, ``result.sim.truth``). The
+    experiment is not consumed: every call starts from fresh estimators.
+    """
+    from .simulate import simulate as run_sim
+
+    res = run_sim(exp, progress=progress, dashboard=dashboard, batched=batched, keep_trajectories=keep_trajectories)
+    summary, results = _summarise_sim(exp, res)
+    return RunResult(exp, summary, results, driver="simulate", sim=res)
+
+
+def open_run(run_dir: str | Path, exp: Experiment | None = None) -> RunResult:
+    """A finished run directory (either driver) as a :class:`RunResult`."""
+    import json
+
+    from .summary import ExpectationResult
+
+    d = Path(run_dir)
+    summary = json.loads((d / "summary.json").read_text())
+    results = [ExpectationResult(**{k: e.get(k) for k in ("label", "value", "max", "min", "ok")})
+               for e in summary.get("expectations", [])]
+    return RunResult(exp, summary, results, run_dir=d, driver="run")
