@@ -14,7 +14,6 @@ Deterministic for a given seed.
 
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -26,6 +25,7 @@ from scenarios.build import Experiment
 from transport.byzantine import Forged
 from transport.channel import Channel, loss_windows
 
+from .middleware import byzantine_strategy
 from .monitor import Monitor, has_diagnostics, read_diagnostics
 from .node import AgentNode
 from .plant import PlantRole
@@ -88,8 +88,7 @@ def make_nodes(exp: Experiment, channel: Channel) -> list[AgentNode]:
     for i, aid in enumerate(exp.agent_ids):
         node = AgentNode(aid, exp.make_estimator(i), channel, [exp.agent_ids[j] for j in exp.in_neighbours(i)],
                          index_of=index_of, out_neighbours=[exp.agent_ids[j] for j in exp.out_neighbours(i)])
-        strategy = exp.strategies.get(i)  # a fresh copy: a strategy keeps state (its RNG, history)
-        node.strategy = copy.deepcopy(strategy) if strategy is not None else None
+        node.strategy = byzantine_strategy(exp, i)  # fresh: a strategy keeps state (its RNG, history)
         nodes.append(node)
     return nodes
 

@@ -70,8 +70,8 @@ def sizes_for(exp: Any) -> Sizes:
                  for i in range(exp.N))
     from agents.net.roles import NetworkView, reads_view
 
-    addressed = tuple(tuple(outs[i]) if exp.strategies.get(i) is not None else () for i in range(exp.N))
-    needed = tuple(tuple(NetworkView(exp, ids[i], None, uses={}).needed) if reads_view(exp.strategies.get(i)) else ()
+    addressed = tuple(tuple(outs[i]) if i in exp.byzantine_specs else () for i in range(exp.N))
+    needed = tuple(tuple(NetworkView(exp, ids[i], None, uses={}).needed) if reads_view(exp.byzantine_specs.get(i)) else ()
                    for i in range(exp.N))
     return Sizes(tuple(ids), tuple(ins), meas, truth, est, done, addressed, needed)
 

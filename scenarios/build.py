@@ -4,6 +4,12 @@
 observer design) and checks what a run cannot do without (shapes, ids, connectivity,
 the redundancy the estimator needs). Errors are :class:`ScenarioError` naming the key path.
 :func:`conditions` evaluates the papers' conditions for ``rse check`` without raising.
+
+Helpers for algorithm plugins (public, also for plugins from other packages, see
+``docs/algorithms/writing-a-plugin.md``): :func:`matrix` (a checked matrix from a list of
+rows), :func:`explicit_AB` (``[plant] A`` and ``B``, checked), :func:`init_vector` (an
+initial vector from an ``Init`` table); with :func:`scenarios.common.rng_for`,
+:class:`scenarios.common.Condition` and :func:`scenarios.common.checked_design`.
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ from estimation.signals import Signal
 
 from . import plugins
 from .common import (  # noqa: F401  (re-exported for the drivers and tests)
-    STREAM_AGENT_X0, STREAM_GRAPH, STREAM_PLANT_X0, STREAM_SENSOR_ATTACK, Condition, PlantModel, rng_for,
+    STREAM_AGENT_X0, STREAM_GRAPH, STREAM_PLANT_X0, STREAM_SENSOR_ATTACK, ByzantineSpec, Condition, PlantModel, rng_for,
 )
 from .schema import Init, Scenario
 
@@ -54,7 +60,8 @@ class Experiment:
     design: Any = None  # the algorithm plugin's offline design
     stepper: Any = None  # a nonlinear / noisy plant's own step (see scenarios.common.PlantStepper)
     byzantine: set[int] = field(default_factory=set)  # agent indices
-    strategies: dict[int, Any] = field(default_factory=dict)  # agent index -> Byzantine strategy
+    #: agent index -> its Byzantine strategy, as specified (the runtime builds the middleware)
+    byzantine_specs: dict[int, ByzantineSpec] = field(default_factory=dict)
     discrete: bool = False
     positions: np.ndarray | None = None  # (banks, 2) map positions of the sensing locations
     patrols: list[Patrol | None] = field(default_factory=list)  # per agent (None: static)
@@ -120,6 +127,8 @@ class Experiment:
 
 
 def init_vector(spec: Init, n: int, rng: np.random.Generator, *, where: str) -> np.ndarray:
+    """An initial vector ``(n,)`` from an :data:`~scenarios.types.Init` table (uniform,
+    zero or an explicit value); ``where`` is the key path named by an error."""
     if spec.kind == "uniform":
         return rng.uniform(spec.low, spec.high, size=n)
     if spec.kind == "zero":
@@ -130,7 +139,10 @@ def init_vector(spec: Init, n: int, rng: np.random.Generator, *, where: str) -> 
     return v
 
 
-def _matrix(rows: Any, where: str, source: str, *, cols: int | None = None, nrows: int | None = None) -> np.ndarray:
+def matrix(rows: Any, where: str, source: str, *, cols: int | None = None, nrows: int | None = None) -> np.ndarray:
+    """A matrix from a scenario's list of rows, checked: rectangular, finite, with ``cols``
+    columns and ``nrows`` rows when given. Errors are :class:`ScenarioError` naming
+    ``where`` (the key path, e.g. ``"estimator.L"``) in ``source`` (the file)."""
     try:
         M = np.array(rows, dtype=float)
     except ValueError:
@@ -150,11 +162,11 @@ def explicit_AB(pl: Any, source: str) -> tuple[np.ndarray, np.ndarray]:
     """``[plant] A`` (square, required) and ``B`` (``n`` rows; none: no input), checked."""
     if pl.A is None:
         raise ScenarioError(f"plant.A: required for model = {pl.model!r}", source=source)
-    A = _matrix(pl.A, "plant.A", source)
+    A = matrix(pl.A, "plant.A", source)
     if A.shape[0] != A.shape[1]:
         raise ScenarioError(f"plant.A: expected a square matrix, got shape {A.shape}", source=source)
     n = A.shape[0]
-    B = _matrix(pl.B, "plant.B", source, nrows=n) if pl.B is not None else np.zeros((n, 0))
+    B = matrix(pl.B, "plant.B", source, nrows=n) if pl.B is not None else np.zeros((n, 0))
     return A, B
 
 
@@ -178,7 +190,7 @@ def _plant(sc: Scenario, source: str) -> PlantModel:
         base = ContinuousLTI(A=A, B=B, banks=(), state_names=names)
     n = base.n
     if sc.sensors is not None:
-        banks = tuple(_matrix(s.C, f"sensors[{k}].C", source, cols=n) for k, s in enumerate(sc.sensors))
+        banks = tuple(matrix(s.C, f"sensors[{k}].C", source, cols=n) for k, s in enumerate(sc.sensors))
     else:
         if not base.banks:
             raise ScenarioError("sensors: required for model = 'lti' (one [[sensors]] table per bank)", source=source)
@@ -291,22 +303,20 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     # sensor attacks
     attacks = []
     byzantine: set[int] = set()
-    strategies: dict[int, Any] = {}
+    specs: dict[int, ByzantineSpec] = {}
     for k, at in enumerate(sc.attacks):
         if at.target == "agent":
-            from transport.byzantine import Strategy  # noqa: PLC0415 (transport is a runtime layer)
-
             for a in at.agents:
                 if a not in index_of:
                     raise ScenarioError(f"attacks[{k}].agents: no agent {a}; agents are {agent_ids[0]}..{agent_ids[-1]}", source=source)
                 i = index_of[a]
-                if i in strategies:
+                if i in specs:
                     raise ScenarioError(f"attacks[{k}].agents: agent {a} already has a Byzantine strategy", source=source)
                 bad = [r for r in (at.towards or []) if r not in index_of]
                 if bad:
                     raise ScenarioError(f"attacks[{k}].towards: no agent(s) {bad}", source=source)
                 dt = sc.run.dt
-                strategies[i] = Strategy(
+                specs[i] = ByzantineSpec(
                     kind=at.kind, start=int(np.ceil(at.start / dt - 1e-9)),
                     stop=None if np.isinf(at.stop) else int(np.ceil(at.stop / dt - 1e-9)),
                     targets=frozenset(at.towards) if at.towards else None, value=at.value, scale=at.scale,
@@ -332,7 +342,7 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     exp = Experiment(
         scenario=sc, source=source, plant=plant, Ad=Ad, Bd=Bd, x0=x0, input=signal, bank_rows=bank_rows,
         bank_names=bank_names, agent_ids=agent_ids, agent_rows=agent_rows, Adj=Adj, blocks=blocks,
-        sensor_attacks=attacks, byzantine=byzantine, strategies=strategies, discrete=model.discrete,
+        sensor_attacks=attacks, byzantine=byzantine, byzantine_specs=specs, discrete=model.discrete,
         positions=model.positions, patrols=patrols, schedules=schedules, cell_of_location=model.cell_of_location,
     )
     _check_expectations(exp, source)

@@ -56,6 +56,26 @@ class PlantModel:
     info: dict[str, Any] = field(default_factory=dict)  # model data plugins need later
 
 
+@dataclass(frozen=True)
+class ByzantineSpec:
+    """A Byzantine agent's strategy as the scenario specifies it (``[[attacks]]`` with
+    ``target = "agent"``), times converted to rounds. The runtime builds the middleware
+    from it (``agents.middleware.byzantine_strategy``); the fields are those of
+    ``transport.byzantine.Strategy``."""
+
+    kind: str
+    start: int = 0
+    stop: int | None = None
+    targets: frozenset[int] | None = None  # receivers affected (None: all)
+    value: float = 0.0
+    scale: float = 1e6
+    shift: int = 1
+    lag: int = 10
+    payload: str = "huge"
+    seed: int = 0
+    agent: int = 0
+
+
 @dataclass
 class Condition:
     """One paper condition as reported by ``rse check``."""

@@ -299,7 +299,7 @@ def _plant(sc: "Scenario", source: str, model: str) -> PlantModel:
     if pl.input.kind != "zero":
         raise ScenarioError(f"plant.input: model {model!r} has no known input (its B is the disturbance matrix of x' = A x + B w)",
                             source=source)
-    from ..build import _matrix, explicit_AB
+    from ..build import explicit_AB, matrix
 
     if model == "ugrinovskii_example":
         if pl.A is not None or pl.B is not None:
@@ -318,7 +318,7 @@ def _plant(sc: "Scenario", source: str, model: str) -> PlantModel:
         n = A.shape[0]
         if sc.sensors is None:
             raise ScenarioError("sensors: required for model = 'hinf' (one [[sensors]] table per node's C_i)", source=source)
-        banks = tuple(_matrix(s.C, f"sensors[{k}].C", source, cols=n) for k, s in enumerate(sc.sensors))
+        banks = tuple(matrix(s.C, f"sensors[{k}].C", source, cols=n) for k, s in enumerate(sc.sensors))
     names = tuple(pl.state_names) if pl.state_names else tuple(f"x{i + 1}" for i in range(n))
     if len(names) != n:
         raise ScenarioError(f"plant.state_names: expected {n} names, got {len(names)}", source=source)
@@ -355,11 +355,11 @@ _MEMO_SIZE = 8
 
 def _matrix_opt(rows: Matrix | None, default: np.ndarray, where: str, source: str, *, nrows: int | None = None,
                 cols: int | None = None) -> np.ndarray:
-    from ..build import _matrix
+    from ..build import matrix
 
     if rows is None:
         return default
-    return _matrix(rows, where, source, nrows=nrows, cols=cols)
+    return matrix(rows, where, source, nrows=nrows, cols=cols)
 
 
 def _plant_data(exp: "Experiment") -> HinfPlant:

@@ -10,8 +10,8 @@ import pytest
 from agents.api import load_experiment
 from agents.net.roles import RunConfig, run_team_in_memory
 from agents.simulate import simulate
+from scenarios.common import ByzantineSpec
 from tests.conftest import SCENARIOS
-from transport.byzantine import Strategy
 from transport.keys import Keys
 from transport.zenoh_bus import InMemoryHub, key_matches
 
@@ -71,7 +71,7 @@ def test_omniscient_cancellation_adversary_in_memory_equals_the_simulator():
 
 def test_addressed_payloads_of_a_byzantine_agent():
     def tweak(exp):
-        exp.strategies[1] = Strategy(kind="equivocation", start=200, scale=0.3)
+        exp.byzantine_specs[1] = ByzantineSpec(kind="equivocation", start=200, scale=0.3)
         exp.byzantine.add(1)
 
     ref, res = _both(SCENARIOS / "lee_kim_shim.toml", LKS, tweak)
