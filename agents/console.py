@@ -82,6 +82,7 @@ def summary_table(summary: dict, *, block: str = "x", title: str | None = None) 
 
 
 def expectations_table(results: list) -> Table:
+    """The ``[[expect]]`` bounds: ok, FAIL, or not evaluated (with the reason)."""
     t = Table(title="expectations", title_justify="left")
     t.add_column("")
     t.add_column("expectation")
@@ -89,7 +90,14 @@ def expectations_table(results: list) -> Table:
     t.add_column("bound", justify="right")
     for r in results:
         bound = " and ".join(x for x in ((f"<= {fmt(r.max)}" if r.max is not None else ""), (f">= {fmt(r.min)}" if r.min is not None else "")) if x)
-        t.add_row("[green]ok" if r.ok else "[red]FAIL", r.label, fmt(r.value), bound)
+        if r.ok is None:
+            t.add_row("[yellow]not evaluated", f"{r.label}\n[dim]{r.reason or ''}", "-", bound)
+        else:
+            t.add_row("[green]ok" if r.ok else "[red]FAIL", r.label, fmt(r.value), bound)
+    skipped = sum(r.ok is None for r in results)
+    if skipped:
+        t.caption = f"{skipped} of {len(results)} expectation(s) not evaluated (they do not fail the run)"
+        t.caption_justify = "left"
     return t
 
 

@@ -58,16 +58,19 @@ def load(scenario: str | Path, *, set: Mapping[str, Any] | Iterable[str] | None 
         ``False`` builds anyway (as ``rse check`` does, to report them)
 
     Returns the built :class:`~scenarios.build.Experiment` (offline design done once);
-    ``exp.frozen`` is the validated scenario as data, ``exp.overrides`` what was applied.
+    ``exp.frozen`` is the validated scenario as data, ``exp.overrides`` what was applied,
+    ``exp.nominal_horizon`` the file's own horizon (a shortened run lists the bounds meant
+    for it as not evaluated).
     """
     from scenarios.build import build
-    from scenarios.loader import load as load_scenario
+    from scenarios.loader import load as load_scenario, nominal_horizon, read_toml
 
     ov = _override_strings(set) + ([f"run.seed={seed}"] if seed is not None else [])
     sc, frozen = load_scenario(scenario, ov)
     exp = build(sc, source=str(scenario), check_conditions=check_conditions)
     exp.frozen = frozen
     exp.overrides = tuple(ov)
+    exp.nominal_horizon = nominal_horizon(read_toml(scenario)) if ov else sc.run.n_rounds * sc.run.dt
     return exp
 
 
@@ -112,7 +115,7 @@ class RunResult:
     @property
     def ok(self) -> bool:
         """Every evaluated ``[[expect]]`` bound held."""
-        return all(r.ok for r in self.expectation_results)
+        return not any(r.failed for r in self.expectation_results)
 
     def metrics(self) -> pd.DataFrame:
         """One row per (round, agent, state block): ``k, t, agent, regular, block, error_2,
@@ -182,6 +185,5 @@ def open_run(run_dir: str | Path, exp: Experiment | None = None) -> RunResult:
 
     d = Path(run_dir)
     summary = json.loads((d / "summary.json").read_text())
-    results = [ExpectationResult(**{k: e.get(k) for k in ("label", "value", "max", "min", "ok")})
-               for e in summary.get("expectations", [])]
+    results = [ExpectationResult.from_dict(e) for e in summary.get("expectations", [])]
     return RunResult(exp, summary, results, run_dir=d, driver="run")

@@ -53,14 +53,38 @@ def convergence_round(err: np.ndarray, threshold: float) -> int | None:
 
 @dataclass
 class ExpectationResult:
+    """One ``[[expect]]`` bound and what the run measured.
+
+    ``ok`` is True (the bound held), False (it failed) or None (not evaluated, ``reason``
+    says why: e.g. its time window lies beyond a shortened run's horizon); a bound that was
+    not evaluated does not fail the command.
+    """
+
     label: str
     value: float
     max: float | None
     min: float | None
-    ok: bool
+    ok: bool | None
+    reason: str | None = None
+
+    @property
+    def failed(self) -> bool:
+        return self.ok is False
+
+    @property
+    def evaluated(self) -> bool:
+        return self.ok is not None
 
     def as_dict(self) -> dict[str, Any]:
-        return {"label": self.label, "value": self.value, "max": self.max, "min": self.min, "ok": self.ok}
+        return {"label": self.label, "value": self.value, "max": self.max, "min": self.min, "ok": self.ok,
+                "reason": self.reason}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "ExpectationResult":
+        """From an entry of ``summary.json``'s ``expectations`` (JSON's null value: NaN)."""
+        value = d.get("value")
+        return cls(label=d.get("label", ""), value=math.nan if value is None else float(value), max=d.get("max"),
+                   min=d.get("min"), ok=d.get("ok"), reason=d.get("reason"))
 
 
 def describe(e: Expectation) -> str:
@@ -72,10 +96,43 @@ def describe(e: Expectation) -> str:
     return f"max {e.metric} ({who}, {block}, {over})"
 
 
+def outside_horizon(exp: Experiment, e: Expectation) -> str | None:
+    """Why ``e`` cannot be evaluated on a run of ``exp``'s horizon (None: it can).
+
+    A bound on a time window that ends after the run's last round cannot be judged; nor,
+    when the run is shorter than the scenario file's own horizon (``--set run.rounds=...``,
+    ``exp.nominal_horizon``), a bound on the ``final`` round or on the default output window
+    (the last quarter of the horizon): those bounds are for the file's horizon.
+    """
+    T = exp.n_rounds * exp.dt
+    T0 = exp.nominal_horizon
+    shortened = T0 is not None and T < T0 - 1e-9 * max(1.0, T0)
+    if e.over == "final":
+        if shortened:
+            return f"the run is shortened to t = {T:g}; the bound is for the final round of the scenario's horizon, t = {T0:g}"
+        return None
+    if e.over == "window" and exp.scenario.output.window is None:
+        if shortened:
+            return (f"the run is shortened to t = {T:g}; the bound is for the output window of the scenario's horizon, "
+                    f"t in [{0.75 * T0:g}, {T0:g}]")
+        return None
+    t0, t1 = exp.window if e.over == "window" else e.over
+    if t1 <= T + 1e-9 * max(1.0, abs(t1)):
+        return None
+    what = "the output window" if e.over == "window" else "its window"
+    return f"{what} t in [{t0:g}, {t1:g}] ends after the run's horizon t = {T:g}"
+
+
 def evaluate(exp: Experiment, mon: Monitor, regular: np.ndarray) -> list[ExpectationResult]:
+    """The scenario's ``[[expect]]`` bounds on the metrics the monitor recorded; a bound
+    whose window lies beyond the horizon is listed as not evaluated, with the reason."""
     last = mon.last_round
     out = []
     for e in exp.scenario.expect:
+        reason = outside_horizon(exp, e)
+        if reason is not None:
+            out.append(ExpectationResult(describe(e), math.nan, e.max, e.min, None, reason))
+            continue
         data = mon.metric(e.metric)[: last + 1]
         rounds = _rounds(exp, e.over, last)
         if e.agents == "regular":

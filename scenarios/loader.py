@@ -17,7 +17,7 @@ from pydantic import ValidationError
 
 from estimation.errors import ScenarioError
 
-from .schema import Scenario
+from .schema import RunSection, Scenario
 
 
 def parse_value(text: str) -> Any:
@@ -194,3 +194,13 @@ def validate(raw: dict, *, source: str, overrides: Iterable[str] = ()) -> tuple[
         src = source + (f" (with --set {' '.join(overrides)})" if overrides else "")
         raise explain(err, src, data) from None
     return sc, data
+
+
+def nominal_horizon(raw: dict) -> float | None:
+    """The horizon in seconds (``rounds * dt`` or ``duration``) of a scenario mapping
+    before overrides; None when its ``[run]`` table is not complete without them."""
+    try:
+        run = RunSection.model_validate(raw.get("run"))
+    except ValidationError:
+        return None
+    return run.n_rounds * run.dt

@@ -61,11 +61,7 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
     if summary is None:
         return
     console.print(summary_table(summary, title=title))
-    results = [ExpectationResult(**{k: e[k] for k in ("label", "value", "max", "min", "ok")})
-               for e in summary.get("expectations", [])]
-    for r in results:
-        if r.value is None:
-            r.value = float("nan")
+    results = [ExpectationResult.from_dict(e) for e in summary.get("expectations", [])]
     if results:
         console.print(expectations_table(results))
     rej = summary.get("rejected") or {}
@@ -74,7 +70,7 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
     perf = summary.get("performance") or {}
     if perf.get("rounds_per_s"):
         console.print(f"{perf['rounds']} rounds in {perf['elapsed_s']:.2f} s: {perf['rounds_per_s']:,.0f} rounds/s")
-    failed = [r for r in results if not r.ok]
+    failed = [r for r in results if r.failed]
     if failed:
         raise ExpectationFailed(f"{len(failed)} of {len(results)} expectation(s) failed: " + "; ".join(r.label for r in failed))
 

@@ -19,17 +19,25 @@ def report(run_dir: Path, other: Path | None, png_dir: Path | None) -> None:
     """Print the summary table of RUN_DIR (and compare it with OTHER when given).
 
     The table lists, per agent and state block, the final error, the worst error in the
-    output window, the convergence round, detected attacks and the in-link counters. It is
+    output window, the convergence round, detected attacks and the in-link counters, then
+    the scenario's [expect] bounds (ok, FAIL, or not evaluated with the reason). It is
     read from the run directory only, so runs of `rse simulate` and `rse run` report alike.
     """
-    from ..console import out
+    from ..console import expectations_table, out
     from ..report import compare_table, figure_compare, figure_errors, figure_states, load_run, report_table
+    from ..summary import ExpectationResult
+
+    def show(run) -> None:
+        out.print(report_table(run))
+        results = [ExpectationResult.from_dict(e) for e in run.summary.get("expectations", [])]
+        if results:
+            out.print(expectations_table(results))
 
     a = load_run(run_dir)
-    out.print(report_table(a))
+    show(a)
     b = load_run(other) if other is not None else None
     if b is not None:
-        out.print(report_table(b))
+        show(b)
         out.print(compare_table(a, b))
     if png_dir is not None:
         png_dir.mkdir(parents=True, exist_ok=True)

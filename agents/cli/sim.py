@@ -63,7 +63,7 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
     if results:
         console.print(expectations_table(results))
     console.print(f"run directory: {run_dir}")
-    failed = [r for r in results if not r.ok]
+    failed = [r for r in results if r.failed]
     if dash is not None:
         try:
             if dopts.serve_web:

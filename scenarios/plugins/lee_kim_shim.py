@@ -105,8 +105,13 @@ def conditions(exp: "Experiment") -> list[Condition]:
         out.append(Condition(f"Theorem 1 bound 2 sqrt(N)/(gamma lambda_2), gamma = {est.gamma:g}", None,
                              f"{theorem1_bound(Adj, est.gamma):.6g}"))
         stable = des.sqrt_Pbar is not None
-        out.append(Condition("plant Lyapunov stable (Theorem 3 / eq. 11)", stable,
-                             "P_bar = I in the modal basis" if stable and np.allclose(des.sqrt_Pbar, np.eye(exp.n)) else ""))
+        detail = "P_bar = I in the modal basis" if stable and np.allclose(des.sqrt_Pbar, np.eye(exp.n)) else ""
+        if est.variant == "lyapunov":  # eq. (11) needs it; eq. (6) and the linear baseline do not
+            out.append(Condition("plant Lyapunov stable (Theorem 3 / eq. 11)", stable, detail))
+        else:
+            detail = ("yes" if stable else "no") + (f"; {detail}" if detail else "")
+            out.append(Condition("plant Lyapunov stable (Theorem 3 / eq. 11; not needed by variant "
+                                 f"{est.variant!r})", None, detail))
         b3 = theorem3_bound(des, Adj, est.gamma)
         if b3 is not None:
             out.append(Condition("Theorem 3 steady-state bound on |x_hat_i - x|", None, f"{b3:.6g}"))

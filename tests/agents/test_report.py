@@ -24,8 +24,10 @@ def test_report_table_lists_every_agent_and_block(run_rse, two_runs):
     assert "lee_kim_shim (simulate): 4000 rounds, window [30, 40]" in out
     for col in ("final |e|_inf", "window max |e|_inf", "converged at round", "in-links delivered/dropped/late/rejected"):
         assert col in out
-    lines = [l for l in out.splitlines() if l.strip().startswith("│")]
+    table, expectations = out.split("\nexpectations", 1)
+    lines = [l for l in table.splitlines() if l.strip().startswith("│")]
     assert len(lines) == 10  # 5 agents x blocks (x, angles)
+    assert [l.split("│")[1].strip() for l in expectations.splitlines() if l.strip().startswith("│ ok")] == ["ok", "ok"]
     assert "0.2165" in out  # agent 1's window maximum
     assert "8002/0/0/0" in out  # two in-links x 4001 rounds, no drops
 
