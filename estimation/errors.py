@@ -18,7 +18,10 @@ Every layer raises these, so a caller can catch by kind. The tree::
     |                                            to a valid message (dropped and counted)
     +-- TransportError (RSEError, RuntimeError)  a session, bus or peer cannot be reached
     +-- ExpectationFailed (RSEError)             a run finished but an ``[expect]`` bound
-                                                 of the scenario does not hold
+    |                                            of the scenario does not hold
+    +-- PluginError (RSEError)                   an algorithm plugin from another package
+                                                 cannot be loaded or breaks the module
+                                                 contract (the message names the package)
 
 ``estimation`` owns this module because every other layer may import from
 ``estimation`` and ``estimation`` imports from none of them.
@@ -79,6 +82,11 @@ class TransportError(RSEError, RuntimeError):
 
 class ExpectationFailed(RSEError):
     """A run completed but at least one ``[expect]`` bound of its scenario failed."""
+
+
+class PluginError(RSEError):
+    """An algorithm plugin (an ``rse.algorithms`` entry point) cannot be loaded or does not
+    satisfy the module contract of :mod:`scenarios.plugins`."""
 
 
 # ---------------------------------------------------------------- exit statuses

@@ -5,11 +5,8 @@ observer design) and checks what a run cannot do without (shapes, ids, connectiv
 the redundancy the estimator needs). Errors are :class:`ScenarioError` naming the key path.
 :func:`conditions` evaluates the papers' conditions for ``rse check`` without raising.
 
-Helpers for algorithm plugins (public, also for plugins from other packages, see
-``docs/algorithms/writing-a-plugin.md``): :func:`matrix` (a checked matrix from a list of
-rows), :func:`explicit_AB` (``[plant] A`` and ``B``, checked), :func:`init_vector` (an
-initial vector from an ``Init`` table); with :func:`scenarios.common.rng_for`,
-:class:`scenarios.common.Condition` and :func:`scenarios.common.checked_design`.
+The helpers algorithm plugins build on (``matrix``, ``explicit_AB``, ``init_vector``, ...)
+are public in :mod:`scenarios.helpers`.
 """
 
 from __future__ import annotations
@@ -32,7 +29,8 @@ from . import plugins
 from .common import (  # noqa: F401  (re-exported for the drivers and tests)
     STREAM_AGENT_X0, STREAM_GRAPH, STREAM_PLANT_X0, STREAM_SENSOR_ATTACK, ByzantineSpec, Condition, PlantModel, rng_for,
 )
-from .schema import Init, Scenario
+from .helpers import explicit_AB, init_vector, matrix  # noqa: F401  (public here too: the plugins' helpers)
+from .schema import Scenario
 
 
 @dataclass
@@ -127,50 +125,6 @@ class Experiment:
     def make_estimator(self, i: int):
         """A fresh estimator for agent index ``i`` (its initial estimate is seeded)."""
         return self.plugin.make_estimator(self, i)
-
-
-def init_vector(spec: Init, n: int, rng: np.random.Generator, *, where: str) -> np.ndarray:
-    """An initial vector ``(n,)`` from an :data:`~scenarios.types.Init` table (uniform,
-    zero or an explicit value); ``where`` is the key path named by an error."""
-    if spec.kind == "uniform":
-        return rng.uniform(spec.low, spec.high, size=n)
-    if spec.kind == "zero":
-        return np.zeros(n)
-    v = np.asarray(spec.value, dtype=float)
-    if v.shape != (n,):
-        raise ScenarioError(f"{where}.value: expected {n} numbers (the state dimension), got {len(v)}")
-    return v
-
-
-def matrix(rows: Any, where: str, source: str, *, cols: int | None = None, nrows: int | None = None) -> np.ndarray:
-    """A matrix from a scenario's list of rows, checked: rectangular, finite, with ``cols``
-    columns and ``nrows`` rows when given. Errors are :class:`ScenarioError` naming
-    ``where`` (the key path, e.g. ``"estimator.L"``) in ``source`` (the file)."""
-    try:
-        M = np.array(rows, dtype=float)
-    except ValueError:
-        raise ScenarioError(f"{where}: rows have different lengths", source=source) from None
-    if M.ndim != 2:
-        raise ScenarioError(f"{where}: expected a matrix (list of rows), got shape {M.shape}", source=source)
-    if cols is not None and M.shape[1] != cols:
-        raise ScenarioError(f"{where}: expected rows of length {cols}, got {M.shape[1]}", source=source)
-    if nrows is not None and M.shape[0] != nrows:
-        raise ScenarioError(f"{where}: expected {nrows} rows, got {M.shape[0]}", source=source)
-    if not np.all(np.isfinite(M)):
-        raise ScenarioError(f"{where}: entries must be finite", source=source)
-    return M
-
-
-def explicit_AB(pl: Any, source: str) -> tuple[np.ndarray, np.ndarray]:
-    """``[plant] A`` (square, required) and ``B`` (``n`` rows; none: no input), checked."""
-    if pl.A is None:
-        raise ScenarioError(f"plant.A: required for model = {pl.model!r}", source=source)
-    A = matrix(pl.A, "plant.A", source)
-    if A.shape[0] != A.shape[1]:
-        raise ScenarioError(f"plant.A: expected a square matrix, got shape {A.shape}", source=source)
-    n = A.shape[0]
-    B = matrix(pl.B, "plant.B", source, nrows=n) if pl.B is not None else np.zeros((n, 0))
-    return A, B
 
 
 def _plant(sc: Scenario, source: str) -> PlantModel:

@@ -52,6 +52,7 @@ from estimation.median_bank import (
 from estimation.median_solver import theorem1_bound
 
 from ..common import STREAM_AGENT_X0, STREAM_PLANT_NOISE, Condition, PlantModel, rng_for
+from ..helpers import init_vector
 from ..types import Init, Strict
 
 if TYPE_CHECKING:
@@ -401,8 +402,6 @@ class FloodingEstimator:
 
 
 def _x0(exp: "Experiment", i: int, st: Any) -> np.ndarray:
-    from ..build import init_vector
-
     spec = exp.scenario.estimator.x0
     if spec is None:
         return np.asarray(st.params.Q_bar, dtype=float) / 4.0

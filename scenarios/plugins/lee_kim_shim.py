@@ -14,6 +14,7 @@ from estimation.median_solver import theorem1_bound
 from estimation.observability import redundancy_violations
 
 from ..common import STREAM_AGENT_X0, Condition, rng_for
+from ..helpers import init_vector
 from ..types import Init, Strict, UniformInit
 
 if TYPE_CHECKING:
@@ -70,8 +71,6 @@ def design(exp: "Experiment", *, check: bool = True) -> LKSDesign | None:
 
 
 def make_estimator(exp: "Experiment", i: int) -> LeeKimShim:
-    from ..build import init_vector
-
     est = exp.scenario.estimator
     x0 = init_vector(est.x0, exp.n, rng_for(exp.seed, STREAM_AGENT_X0, i), where="estimator.x0")
     return LeeKimShim(exp.design, agent=i, kappa=est.kappa, gamma=est.gamma, dt=exp.dt, variant=est.variant,

@@ -47,6 +47,7 @@ from estimation.ugrinovskii import UgrinovskiiBaseline, UgrinovskiiNode, first_o
 from estimation.ugrinovskii_example import PAPER_GAMMA2, PAPER_GAMMA2_BAR, example_problem, plant_matrix
 
 from ..common import STREAM_AGENT_X0, STREAM_ESTIMATOR, STREAM_PLANT_NOISE, Condition, PlantModel, checked_design, rng_for
+from ..helpers import explicit_AB, init_vector, matrix
 from ..types import Init, Matrix, Strict, ZeroInit
 
 if TYPE_CHECKING:
@@ -299,8 +300,6 @@ def _plant(sc: "Scenario", source: str, model: str) -> PlantModel:
     if pl.input.kind != "zero":
         raise ScenarioError(f"plant.input: model {model!r} has no known input (its B is the disturbance matrix of x' = A x + B w)",
                             source=source)
-    from ..build import explicit_AB, matrix
-
     if model == "ugrinovskii_example":
         if pl.A is not None or pl.B is not None:
             raise ScenarioError("plant: A and B are given by model 'ugrinovskii_example'; use model = 'hinf' for explicit matrices",
@@ -355,8 +354,6 @@ _MEMO_SIZE = 8
 
 def _matrix_opt(rows: Matrix | None, default: np.ndarray, where: str, source: str, *, nrows: int | None = None,
                 cols: int | None = None) -> np.ndarray:
-    from ..build import matrix
-
     if rows is None:
         return default
     return matrix(rows, where, source, nrows=nrows, cols=cols)
@@ -601,8 +598,6 @@ class BaselineObserver(_Runtime, UgrinovskiiBaseline):
 
 
 def make_estimator(exp: "Experiment", i: int):
-    from ..build import init_vector
-
     est = exp.scenario.estimator
     des: UgrinovskiiDesign = exp.design
     pb = des.problem
