@@ -88,6 +88,15 @@ def test_the_plugin_is_found_through_its_entry_point_only(installed):
     assert "estimator: unknown algorithm" in " ".join(res.stderr.split())
 
 
+def test_the_package_own_tests_pass_against_the_installed_copy(installed):
+    pkg, env = installed
+    if not (pkg / "tests").is_dir():
+        pytest.skip(f"{pkg.name} has no tests/")
+    res = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(pkg / "tests")],
+                         capture_output=True, text=True, env=env, timeout=600, cwd=ROOT)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
 def test_scenarios_hold_their_bounds_and_comparisons_fail_them(installed, tmp_path):
     pkg, env = installed
     for sc in _scenarios(pkg, "scenarios"):
