@@ -105,8 +105,8 @@ def outside_horizon(exp: Experiment, e: Expectation) -> str | None:
     (the last quarter of the horizon): those bounds are for the file's horizon.
     """
     T = exp.n_rounds * exp.dt
-    T0 = exp.nominal_horizon
-    shortened = T0 is not None and T < T0 - 1e-9 * max(1.0, T0)
+    T0 = exp.nominal_horizon if exp.nominal_horizon is not None else T
+    shortened = T < T0 - 1e-9 * max(1.0, T0)
     if e.over == "final":
         if shortened:
             return f"the run is shortened to t = {T:g}; the bound is for the final round of the scenario's horizon, t = {T0:g}"

@@ -25,7 +25,14 @@ import numpy as np
 from estimation.errors import ScenarioError
 
 from .common import (
-    STREAM_AGENT_X0, STREAM_ESTIMATOR, STREAM_PLANT_NOISE, Condition, PlantModel, PlantStepper, checked_design, rng_for,
+    STREAM_AGENT_X0,
+    STREAM_ESTIMATOR,
+    STREAM_PLANT_NOISE,
+    Condition,
+    PlantModel,
+    PlantStepper,
+    checked_design,
+    rng_for,
 )
 from .types import Init, Matrix, Strict, UniformInit, ValueInit, Vector, ZeroInit
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.metadata
-from functools import lru_cache
+from functools import cache
 from types import ModuleType
 from typing import Any, Literal, get_args, get_origin
 
@@ -53,7 +53,7 @@ REQUIRED = ("ESTIMATOR", "design", "make_estimator", "conditions", "design_json"
 BUILTIN_PLANTS = ("three_inertia", "lti")
 
 
-@lru_cache(maxsize=None)
+@cache
 def modules() -> tuple[ModuleType, ...]:
     """The built-in plugins, then those of the ``rse.algorithms`` entry points (by name)."""
     mods = [importlib.import_module(m) for m in MODULES]

@@ -30,8 +30,8 @@ unobserved mode is not claimed (``rse check`` says so).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 from scipy.signal import place_poles

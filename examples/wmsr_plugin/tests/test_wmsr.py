@@ -3,9 +3,9 @@ installed)."""
 
 import numpy as np
 import pytest
+from rse_wmsr.wmsr import WmsrObserver, average, design, wmsr
 
 from estimation.errors import DesignError
-from rse_wmsr.wmsr import WmsrObserver, average, design, wmsr
 
 
 def test_wmsr_removes_f_values_on_each_side_of_its_own():
