@@ -112,6 +112,8 @@ def explain(err: ValidationError, source: str, data: Any) -> ScenarioError:
         if typ == "union_tag_invalid":
             tags = ctx.get("expected_tags", "").replace("'", "")
             msg = f"unknown {ctx.get('discriminator', 'kind').strip(chr(39))} {ctx.get('tag')!r}; expected one of {tags}"
+            if ctx.get("discriminator", "").strip(chr(39)) == "algorithm":
+                msg += " (an algorithm from another package is found once that package is installed: rse.algorithms entry points)"
         elif typ == "union_tag_not_found":
             msg = f"missing key {ctx.get('discriminator', '').strip(chr(39))!r}"
         elif typ == "extra_forbidden":
