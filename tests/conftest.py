@@ -6,12 +6,47 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # a
 import shutil  # noqa: E402
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
+
+# algorithms whose offline design solves a convex program with cvxpy (an optional extra:
+# `pip install '.[lmi]'`); their scenarios skip without it
+CVXPY_ALGORITHMS = {"median_bank": "the median bank's observer gains (LMI)", "ugrinovskii": "the H-infinity LMIs"}
+
+
+def pytest_addoption(parser):
+    parser.addoption("--without", action="append", default=[], metavar="MODULE",
+                     help="run as if MODULE were not installed (for the tests that must skip without an optional "
+                          "dependency), e.g. --without cvxpy")
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "needs(module, why): skip (with the reason) where the optional module is absent")
+    for name in config.getoption("--without"):
+        sys.modules[name] = None  # `import name` raises ModuleNotFoundError
+
+
+def pytest_runtest_setup(item):
+    for mark in item.iter_markers("needs"):
+        name, why = mark.args[0], mark.args[1] if len(mark.args) > 1 else ""
+        pytest.importorskip(name, reason=f"needs {name}" + (f" for {why}" if why else "") + f" (not installed)")
+
+
+def needs_cvxpy(path: Path) -> list:
+    """The ``needs("cvxpy")`` mark for a scenario file whose algorithm's design uses cvxpy."""
+    algorithm = tomllib.loads(Path(path).read_text()).get("estimator", {}).get("algorithm")
+    why = CVXPY_ALGORITHMS.get(algorithm)
+    return [pytest.mark.needs("cvxpy", f"{Path(path).name}: {why}")] if why else []
+
+
+def scenario_params(paths) -> list:
+    """One ``pytest.param`` per scenario file, id its stem, marked where it needs cvxpy."""
+    return [pytest.param(p, id=Path(p).stem, marks=needs_cvxpy(p)) for p in paths]
 
 
 def rse(*args: str, timeout: float = 300, cwd: Path | None = None, env: dict | None = None) -> subprocess.CompletedProcess:

@@ -30,6 +30,7 @@ from scenarios.build import build, conditions
 from scenarios.loader import load
 
 SC = Path(__file__).resolve().parents[1] / "scenarios"
+LMI = pytest.mark.needs("cvxpy", "the median bank's LMI design (10)")  # every test that builds the design
 CENTRAL, DISTRIBUTED = "inverters_median.toml", "inverters_distributed.toml"
 DIST = "plant.params.disturbance=6"  # the +-6 V random disturbance
 NO_ATTACK = "attacks=[]"
@@ -95,6 +96,7 @@ def window(exp):
     return (t >= T0 - 1e-9) & (t <= T1 + 1e-9)
 
 
+@LMI
 # --------------------------------------------------------------------------- central (the paper)
 def test_without_disturbance_the_median_removes_the_attack_and_the_conventional_is_biased():
     exp, res, recs = run(CENTRAL)
@@ -111,6 +113,7 @@ def test_without_disturbance_the_median_removes_the_attack_and_the_conventional_
         assert err[window(exp)].max() > 100.0
 
 
+@LMI
 @pytest.mark.parametrize("overrides", [(), (DIST,), (DIST, NO_ATTACK)], ids=["attack", "attack+disturbance", "disturbance"])
 def test_median_lies_within_the_unattacked_observers_at_every_step(overrides):
     """The mechanism of Theorem 1, through the simulator: at every round each component of the
@@ -125,6 +128,7 @@ def test_median_lies_within_the_unattacked_observers_at_every_step(overrides):
     np.testing.assert_array_equal(res.estimates[:, 0], med)  # what the monitor saw
 
 
+@LMI
 def test_with_disturbance_the_median_beats_static_inversion_and_ignores_the_attack():
     med = v2_error(CENTRAL, DIST, "expect=[]")
     static = v2_error(CENTRAL, DIST, "estimator.mode=static_inversion", "expect=[]")
@@ -138,6 +142,7 @@ def test_with_disturbance_the_median_beats_static_inversion_and_ignores_the_atta
     assert med < conv  # reported: the ratio to the conventional observer
 
 
+@LMI
 def test_the_simulator_reproduces_the_reference_loop():
     """Plant stepper (volts, attack +30 V on the published voltage, disturbance seeded from
     run.seed) + the plugin's estimators == estimation.median_bank.run_central, which the core's
@@ -156,6 +161,7 @@ def test_the_simulator_reproduces_the_reference_loop():
             np.testing.assert_allclose(r2.estimates[:, 0], ref[key], rtol=1e-9, atol=1e-6)
 
 
+@LMI
 def test_the_attack_lands_in_volts():
     exp, _, _ = run(CENTRAL)
     role = PlantRole(exp)
@@ -173,6 +179,7 @@ def test_the_attack_lands_in_volts():
     np.testing.assert_array_equal(before.measure(k - 1) - exp.stepper.measure(k - 1, before.x), 0.0)
 
 
+@LMI
 def test_disturbance_is_bounded_held_and_seeded():
     exp, _, _ = run(CENTRAL, DIST, "expect=[]")
     st = exp.stepper
@@ -187,6 +194,7 @@ def test_disturbance_is_bounded_held_and_seeded():
     assert not np.any(run(CENTRAL, "expect=[]")[0].stepper.d(10))
 
 
+@LMI
 # --------------------------------------------------------------------------- distributed
 @pytest.mark.parametrize("graph", ["line", "ring"])
 @pytest.mark.parametrize("drift", ["model", "reference"])
@@ -209,6 +217,7 @@ def test_distributed_without_disturbance(graph, drift):
         assert own.max() > 100.0
 
 
+@LMI
 @pytest.mark.parametrize("drift", ["model", "reference"])
 def test_distributed_with_disturbance_is_within_twice_the_central_median(drift):
     ov = (DIST, f'estimator.drift="{drift}"', "expect=[]")
@@ -228,6 +237,7 @@ def test_distributed_with_disturbance_is_within_twice_the_central_median(drift):
     assert flood == pytest.approx(central, rel=0.02)
 
 
+@LMI
 def test_the_solver_without_drift_is_rate_limited():
     """Eq. (4) as printed (no drift): one sign step moves xi by at most 1 / (gamma d) per
     round, so at dt = 0.01 it cannot follow the ~300 VAr/s motion of the median with a small
@@ -235,6 +245,7 @@ def test_the_solver_without_drift_is_rate_limited():
     assert v2_error(DISTRIBUTED, 'estimator.drift="none"', "expect=[]") > 100.0
 
 
+@LMI
 def test_flooding_reference_without_disturbance():
     exp, res, recs = run(DISTRIBUTED, "estimator.mode=flooding", "expect=[]")
     assert v2_error(DISTRIBUTED, "estimator.mode=flooding", "expect=[]") <= 1e-2
@@ -249,6 +260,7 @@ def test_flooding_reference_without_disturbance():
     assert v2_error(DISTRIBUTED, "estimator.mode=flooding", "estimator.predict=false", "expect=[]") > 1.0
 
 
+@LMI
 def test_distributed_lockstep_over_the_bus_equals_the_simulator():
     """The protocol of ``rse run`` (in memory, one role per inverter): same estimates; the
     experiment and every agent's estimator pickle (they are shipped to the processes)."""
@@ -268,6 +280,7 @@ def test_distributed_lockstep_over_the_bus_equals_the_simulator():
         np.testing.assert_array_equal(res.estimates, ref.estimates)
 
 
+@LMI
 # --------------------------------------------------------------------------- rse check, design, errors
 def test_check_reports_the_lmi_and_n_gt_2m():
     sc, _ = load(SC / CENTRAL, [])
@@ -290,6 +303,7 @@ def test_check_reports_the_lmi_and_n_gt_2m():
     assert "N > 2M (median over agents)" in names and any(n.startswith("solver bound") for n in names)
 
 
+@LMI
 def test_design_is_plain_picklable_and_written():
     exp, _, _ = run(CENTRAL)
     d = pickle.loads(pickle.dumps(exp.design))
@@ -323,6 +337,7 @@ def test_median_bank_needs_a_lure_plant():
         build(sc, source="lee_kim_shim.toml")
 
 
+@LMI
 @pytest.mark.multiprocess
 @pytest.mark.slow
 def test_rse_run_one_process_per_inverter(tmp_path):

@@ -10,6 +10,7 @@ from agents.simulate import simulate
 from agents.summary import evaluate
 from scenarios.build import build
 from scenarios.loader import load
+from tests.conftest import scenario_params
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 FILES = sorted(SCENARIOS.glob("*.toml"))
@@ -29,7 +30,7 @@ def worst(exp, res, metric, t0, t1, block="x"):
     return float(np.nanmax(mon.metric(metric)[rows][:, res.regular, b]))
 
 
-@pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
+@pytest.mark.parametrize("path", scenario_params(FILES))
 def test_every_scenario_meets_its_expectations(path):
     exp, res = run(path)
     results = evaluate(exp, res.monitor, res.regular)

@@ -3,6 +3,8 @@ simulator (the networked roles over the in-memory bus: the protocol of `rse run`
 
 import asyncio
 
+import pytest
+
 from agents.api import load_experiment
 from agents.net.roles import RunConfig, run_team_in_memory
 from agents.simulate import simulate
@@ -28,6 +30,7 @@ def test_mao_tabuada_flags_under_the_networked_roles():
     assert net["detected_attacks"] == ref["detected_attacks"]
 
 
+@pytest.mark.needs("cvxpy", "the H-infinity LMIs")
 def test_ugrinovskii_flags_under_the_networked_roles():
     ref, net = both("ugrinovskii_biasing.toml", ("run.duration=5.0", "expect=[]"))
     assert ref["detected_attacks"]["agents"] == [2]

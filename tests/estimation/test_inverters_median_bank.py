@@ -21,6 +21,8 @@ from estimation.median_bank import (
     window_error,
 )
 
+pytestmark = pytest.mark.needs("cvxpy", "the LMI design (10)")
+
 DT = 0.01  # reference round length (s)
 T_END = 20.0
 HONEST = [1, 2, 4]  # sensors 2, 3, 5; sensors 1 and 4 (ids 0, 3) are attacked
