@@ -276,7 +276,7 @@ def test_distributed_lockstep_over_the_bus_equals_the_simulator():
         exp = pickle.loads(pickle.dumps(exp))
         for node in make_nodes(exp, make_channel(exp)):
             pickle.loads(pickle.dumps(node))
-        res = asyncio.run(asyncio.wait_for(run_team_in_memory(exp, RunConfig(save_estimates=True, deadline=5.0)), 120))
+        res = asyncio.run(asyncio.wait_for(run_team_in_memory(exp, RunConfig(save_estimates=True, deadline=30.0)), 600))
         np.testing.assert_array_equal(res.estimates, ref.estimates)
 
 
@@ -348,7 +348,9 @@ def test_rse_run_one_process_per_inverter(tmp_path):
     ov = ("run.duration=2", "expect=[]", "output.window=[0.0, 2.0]")
     args = [a for o in ov for a in ("--set", o)]
     out = tmp_path / "run"
-    r = rse("run", str(SC / DISTRIBUTED), *args, "--out", str(out), "--no-progress", "--save-estimates", timeout=240)
+    # a deadline only a hang reaches: a missed round would break the equality on a loaded machine
+    r = rse("run", str(SC / DISTRIBUTED), *args, "--out", str(out), "--no-progress", "--save-estimates",
+            "--deadline", "30", timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     sc, _ = load(SC / DISTRIBUTED, list(ov))
     ref = simulate(build(sc, source=DISTRIBUTED), keep_trajectories=True)

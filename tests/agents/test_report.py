@@ -78,7 +78,7 @@ def test_report_table_is_the_same_for_both_drivers(tmp_path):
     write_json(sim_dir / "manifest.json", {"driver": "simulate", "scenario": {"run": {"name": "lee_kim_shim"}}})
     exp, _ = load_experiment(SCENARIOS / "lee_kim_shim.toml", ov, None)
     net_dir = tmp_path / "net"
-    asyncio.run(asyncio.wait_for(run_team_in_memory(exp, RunConfig(deadline=5.0), out_dir=net_dir), 120))
+    asyncio.run(asyncio.wait_for(run_team_in_memory(exp, RunConfig(deadline=30.0), out_dir=net_dir), 600))
     write_json(net_dir / "manifest.json", {"driver": "run", "scenario": {"run": {"name": "lee_kim_shim"}}})  # the launcher's part
     a, b = load_run(sim_dir), load_run(net_dir)
     rows = table_rows(a)

@@ -20,7 +20,7 @@ def both(name, overrides):
     ref = simulate(exp)
     ref_summary = summarise(exp, ref.monitor, ref.regular, ref.links)
     exp, _ = load_experiment(SCENARIOS / name, overrides, None)
-    res = asyncio.run(asyncio.wait_for(run_team_in_memory(exp, RunConfig(deadline=5.0)), 120))
+    res = asyncio.run(asyncio.wait_for(run_team_in_memory(exp, RunConfig(deadline=30.0)), 600))
     return ref_summary, res.summary
 
 

@@ -1,7 +1,8 @@
 """Zenoh sessions and the thread -> asyncio bridge, with real sessions on loopback.
 
-Every test that opens a session closes it in ``finally`` and bounds its waits; a
-faulthandler watchdog ends the test process with a traceback if anything still hangs.
+Every test that opens a session closes it in ``finally`` and bounds its waits; a watchdog
+fails a test that still hangs after ``WATCHDOG_S`` (every thread's stack printed), and the
+run goes on with the next test.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ import asyncio
 import faulthandler
 import json
 import logging
+import signal
 import subprocess
 import sys
 import textwrap
@@ -37,18 +39,31 @@ from transport.zenoh_session import (
 )
 
 ROOT = Path(__file__).resolve().parents[2]
-WATCHDOG_S = 60
+WATCHDOG_S = 120  # per test: only a hang reaches it (the slowest test takes a few seconds)
 DEADLINE_S = 10.0
 
 SCHEMA = Schema({"est": {"x": (3,)}})
 
 
 @pytest.fixture(autouse=True)
-def watchdog():
-    faulthandler.dump_traceback_later(WATCHDOG_S, exit=True)
+def watchdog(request):
+    """A hang fails this test alone: after ``WATCHDOG_S`` a SIGALRM prints every thread's stack
+    and raises in the test. A hang inside native code that never returns to the interpreter
+    cannot be interrupted that way: ``faulthandler`` ends the process with the stacks at
+    ``3 * WATCHDOG_S`` (better than a run that never ends)."""
+
+    def expired(signum, frame):
+        faulthandler.dump_traceback(all_threads=True)
+        pytest.fail(f"{request.node.name} still running after {WATCHDOG_S} s (a hang): stacks above", pytrace=True)
+
+    previous = signal.signal(signal.SIGALRM, expired)
+    signal.setitimer(signal.ITIMER_REAL, WATCHDOG_S)
+    faulthandler.dump_traceback_later(3 * WATCHDOG_S, exit=True)
     try:
         yield
     finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
         faulthandler.cancel_dump_traceback_later()
 
 
