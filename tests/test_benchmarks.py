@@ -30,7 +30,7 @@ QUICK_FIGURES = {
 }
 
 
-def bench(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+def bench(*args: str, timeout: float = 900) -> subprocess.CompletedProcess:  # only a hang reaches the timeout
     env = dict(os.environ, COLUMNS="200")
     env.pop("RSE_DEBUG", None)
     return subprocess.run([sys.executable, "-m", "benchmarks", *args], capture_output=True, text=True,
@@ -65,7 +65,10 @@ def test_quick_run_writes_every_figure_with_sane_values(quick):
         v["run/2 procs/rounds_per_s"] / v["run/2 procs/skeleton_rounds_per_s"])
     assert v["run/2 procs/agent_rounds_per_s"] == pytest.approx(2 * v["run/2 procs/rounds_per_s"])
     assert v["memory/16 agents/rss_peak_mb"] > v["memory/16 agents/rss_team_mb"]
-    assert 20 < v["run/2 procs/agent_rss_median_mb"] <= v["run/2 procs/agent_rss_max_mb"] < 2000
+    # peak RSS per agent process: 124 MB measured on main (Dec 2026, --quick, 2 agents); twice
+    # that catches a regression (an agent that imports the simulator's stack, a leak); lower
+    # it when the agents get leaner (the target is <= 60 MB)
+    assert 20 < v["run/2 procs/agent_rss_median_mb"] <= v["run/2 procs/agent_rss_max_mb"] < 250
     assert v["sweep/2 runs/runs_per_s"] == pytest.approx(2 / v["sweep/2 runs/elapsed_s"])
     m = doc["machine"]
     assert m["cpu"] and m["cores_logical"] >= 1 and m["python"].split()[-1] == ".".join(map(str, sys.version_info[:3]))

@@ -70,15 +70,27 @@ def test_nonresilient_baseline_is_biased(dt):
     assert worst(exp, res, "error_inf", 30.0, 40.0) >= 0.3
 
 
-@pytest.mark.parametrize("kind, extra", [("ramp", "attacks.0.slope=0.5"), ("sine", "attacks.0.amplitude=3.0"),
-                                         ("random", "attacks.0.scale=5.0")])
-def test_lee_kim_shim_other_attack_kinds(kind, extra):
+# measured with the scenario's seed (the simulator is deterministic), the worst infinity-norm
+# error of each agent over [30, 40]: agent 1 (its own sensor attacked), then agents 2 to 5
+OTHER_ATTACKS = {
+    "ramp": ("attacks.0.slope=0.5", [0.125, 0.00215, 2.49e-06, 0.0575, 0.105]),
+    "sine": ("attacks.0.amplitude=3.0", [0.248, 0.0178, 1.12e-05, 0.0437, 0.105]),
+    "random": ("attacks.0.scale=5.0", [0.396, 0.101, 5.87e-05, 0.0309, 0.0698]),
+}
+
+
+@pytest.mark.parametrize("kind", list(OTHER_ATTACKS))
+def test_lee_kim_shim_other_attack_kinds(kind):
     """Unbounded ramp, sinusoid and random attacks on sensor 1: the agents whose own sensor
-    is clean stay within the acceptance bound; agent 1, whose own partial observer is
-    corrupted, is pulled back by its neighbours and stays bounded (with a random attack
-    its sign term random-walks its estimate, which stays below 0.5 here)."""
+    is clean stay within the acceptance bound 0.25, each within 10 times what it reaches
+    today (OTHER_ATTACKS); agent 1, whose own partial observer is corrupted, is pulled back
+    by its neighbours and stays bounded. With a random attack its sign term random-walks
+    its estimate: 0.396 with the scenario's seed, 0.40 to 0.48 over seeds 1 to 8, so it is
+    held to 0.5 (twice the scenario's bound, which is for the sinusoid the paper uses);
+    with the ramp and the sinusoid it stays within the scenario's 0.25."""
+    extra, measured = OTHER_ATTACKS[kind]
     exp, res = run(LKS, "run.dt=0.01", f"attacks.0.kind={kind}", extra, "attacks.0.omega=1.0")
     t = np.arange(res.monitor.last_round + 1) * exp.dt
-    e = res.monitor.metric("error_inf")[t >= 30.0, :, 0]
-    assert np.max(e[:, 1:]) <= 0.25
-    assert np.max(e[:, 0]) <= (0.25 if kind != "random" else 0.5)
+    worst_each = res.monitor.metric("error_inf")[t >= 30.0, :, 0].max(axis=0)
+    bounds = [0.25 if kind != "random" else 0.5] + [min(0.25, 10 * m) for m in measured[1:]]
+    assert np.all(worst_each <= bounds), (worst_each.tolist(), bounds)
