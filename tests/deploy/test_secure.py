@@ -25,6 +25,7 @@ pytest.importorskip("cryptography", reason="rse certs needs the cryptography pac
 pytestmark = pytest.mark.multiprocess
 
 RUN = "sec-test"
+WAIT_S = 60.0  # for a message to get through: only a hang reaches it
 LKS = SCENARIOS / "lee_kim_shim.toml"
 SMALL = ("run.dt=0.01", "run.duration=6", "output.window=[4.0, 6.0]", "expect=[]")
 
@@ -127,7 +128,7 @@ def test_without_credentials_nothing_connects_or_gets_through(net, certs, tmp_pa
     time.sleep(0.3)
     assert got == []
     good = net.open("agent-2")
-    assert _until(lambda: got, 5, lambda: good.put(f"rse/{RUN}/agent/2/est", b"genuine"))
+    assert _until(lambda: got, WAIT_S, lambda: good.put(f"rse/{RUN}/agent/2/est", b"genuine"))
     assert {v for _, v in got} == {b"genuine"}
 
 
@@ -153,10 +154,12 @@ def test_an_agent_cannot_speak_for_another_agent_or_the_plant(net):
         a2.put(f"rse/{RUN}/ctl/done/2", b"own")
 
     ok = _until(lambda: (f"rse/{RUN}/agent/2/est", b"own") in heard and (f"rse/{RUN}/ctl/done/2", b"own") in heard_mon
-                and f"rse/{RUN}/alive/agent/2" in tokens, 10, send)
+                and f"rse/{RUN}/alive/agent/2" in tokens, WAIT_S, send)
     for _ in range(5):
         send()
-    time.sleep(0.3)
+    # the last word, after the forged ones on the same session: once it is heard, whatever the
+    # router let through before it has been heard too
+    assert _until(lambda: (f"rse/{RUN}/agent/2/est", b"last") in heard, WAIT_S, lambda: a2.put(f"rse/{RUN}/agent/2/est", b"last"))
     assert ok, (heard, heard_mon, tokens)
     assert not [k for k, v in heard + heard_mon if v == b"forged"], (heard, heard_mon)
     assert f"rse/{RUN}/alive/agent/2" in tokens and f"rse/{RUN}/alive/agent/3" not in tokens, tokens
@@ -174,9 +177,12 @@ def test_only_the_monitor_hears_the_true_state(net):
         plant.put(f"rse/{RUN}/plant/truth", b"x")
         plant.put(f"rse/{RUN}/plant/loc/3", b"y3")
 
-    assert _until(lambda: got_mon and (f"rse/{RUN}/plant/loc/3", b"y3") in got_a3, 10, send), (got_mon, got_a3)
+    assert _until(lambda: got_mon and (f"rse/{RUN}/plant/loc/3", b"y3") in got_a3, WAIT_S, send), (got_mon, got_a3)
     send()
-    time.sleep(0.3)
+    # the last word on the one key agent 3 may hear, after the truth: once it is heard, a truth
+    # the router let through would have been heard too
+    assert _until(lambda: (f"rse/{RUN}/plant/loc/3", b"last") in got_a3, WAIT_S,
+                  lambda: plant.put(f"rse/{RUN}/plant/loc/3", b"last"))
     assert {k for k, _ in got_mon} == {f"rse/{RUN}/plant/truth"}
     assert {k for k, _ in got_a3} == {f"rse/{RUN}/plant/loc/3"}, got_a3
 
@@ -195,7 +201,7 @@ def test_rse_run_secure_equals_the_simulator_and_records_the_router_in_the_team_
         for ov in SMALL:
             args += ["--set", ov]
         p = ps.start(rse_cmd(*args))
-        so, se = p.communicate(timeout=55)
+        so, se = p.communicate(timeout=600)  # a hang only
         assert p.returncode == 0, se
         assert "Traceback" not in se
     finally:
@@ -215,14 +221,21 @@ def test_rse_run_secure_sigterm_stops_every_process_and_the_router_within_2_s(ce
     try:
         p = ps.start(rse_cmd("run", str(LKS), "--set", "run.dt=0.01", "--mode", "realtime", "--rate", "50",
                              "--secure", str(certs), "--out", str(out), "--no-progress", "--no-rerun"))
-        assert _until(lambda: _round(out) > 5, 30), p.poll() is None or p.communicate()
+        assert _until(lambda: _round(out) > 5, 300), p.poll() is None or p.communicate()
         team = json.loads((out / "team.json").read_text())
         assert "router" in team["pids"]
         children = [psutil.Process(pid) for pid in team["pids"].values()]
         t0 = time.monotonic()
         p.send_signal(signal.SIGTERM)
-        so, se = p.communicate(timeout=10)
-        assert time.monotonic() - t0 < 2.0
+        so, se = p.communicate(timeout=30)
+        stop_s = time.monotonic() - t0
+        print(f"\nSIGTERM -> every process gone in {stop_s:.2f} s")
+        # the feature (README: every command ends within 2 s of SIGTERM), not loosened. Measured
+        # on two cores at load average 27 to 80: every child gone within 0.5 s, the launcher's
+        # stop (SIGTERM, 1 s grace, SIGKILL, join) done within 0.94 s, but the launcher's own
+        # exit took 1.95 to 8.1 s in all: the interpreter's finalisation (native code, after
+        # the atexit handlers), not the grace
+        assert stop_s < 2.0
         assert p.returncode == 130 and "Traceback" not in se
         gone, alive = psutil.wait_procs(children, timeout=0.5)
         assert not alive
