@@ -34,7 +34,7 @@ def pytest_configure(config):
 def pytest_runtest_setup(item):
     for mark in item.iter_markers("needs"):
         name, why = mark.args[0], mark.args[1] if len(mark.args) > 1 else ""
-        pytest.importorskip(name, reason=f"needs {name}" + (f" for {why}" if why else "") + f" (not installed)")
+        pytest.importorskip(name, reason=f"needs {name}" + (f" for {why}" if why else "") + " (not installed)")
 
 
 def needs_cvxpy(path: Path) -> list:
