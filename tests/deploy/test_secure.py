@@ -125,8 +125,7 @@ def test_without_credentials_nothing_connects_or_gets_through(net, certs, tmp_pa
                     s.put(f"rse/{RUN}/agent/2/est", b"injected")
         finally:
             close_session(s)
-    time.sleep(0.3)
-    assert got == []
+    # none of them got a session: once agent 2's genuine message is heard, nothing else was
     good = net.open("agent-2")
     assert _until(lambda: got, WAIT_S, lambda: good.put(f"rse/{RUN}/agent/2/est", b"genuine"))
     assert {v for _, v in got} == {b"genuine"}
