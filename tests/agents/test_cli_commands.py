@@ -1,5 +1,5 @@
-"""The command line as a user runs it, real ``rse`` processes: ``rse check`` on every scenario
-file, ``rse sweep`` interrupted and resumed, ``rse bench simulate --rerun-overhead``,
+"""The command line as a user runs it, real ``rse`` processes: ``rse check`` and a shortened
+``rse simulate`` on every scenario file, ``rse sweep`` interrupted and resumed, ``rse bench simulate --rerun-overhead``,
 ``rse simulate --rrd PATH`` and ``--viewer``, and an agent that fails during ``rse run``."""
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import re
 import shutil
 import signal
 import time
+import tomllib
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -61,6 +62,25 @@ def test_rse_check_on_every_scenario_file(run_rse, path):
     else:
         assert res.returncode == 0, res.stdout + res.stderr
         assert fails == []
+
+
+def _shortened(path: Path, rounds: int = 20) -> list[str]:
+    """``--set`` arguments that cut a scenario to its first ``rounds`` rounds (no bounds)."""
+    run = tomllib.loads(path.read_text())["run"]
+    T = rounds * run["dt"]
+    horizon = f"run.rounds={rounds}" if "rounds" in run else f"run.duration={T:g}"
+    return [a for ov in (horizon, "expect=[]", f"output.window=[0, {T:g}]") for a in ("--set", ov)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", scenario_params(FILES))
+def test_rse_simulate_on_every_scenario_file_shortened(run_rse, path, tmp_path):
+    """Every scenario file runs from the command line (its first 20 rounds): exit 0, the run
+    directory with its summary, no traceback."""
+    out = tmp_path / "run"
+    res = run_rse("simulate", str(path), "--out", str(out), "--no-progress", "--no-rerun", *_shortened(path))
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    assert json.loads((out / "summary.json").read_text())["rounds"] == 20
 
 
 def _points(out: Path) -> dict[Path, int]:
