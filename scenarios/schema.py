@@ -260,6 +260,57 @@ class Expectation(Strict):
         return self
 
 
+# --------------------------------------------------------------------------- [redteam]
+SensorKind = Literal["constant", "ramp", "sine", "random"]
+AgentKind = Literal["constant", "huge", "omission", "equivocation", "false_stamp", "replay", "crash", "cancellation"]
+
+
+class RedteamSection(Strict):
+    """Overrides of the search space ``rse redteam`` derives from the scenario (every key
+    optional; docs/redteam.md). Budgets above the algorithm's threat model need ``--beyond``."""
+
+    #: attacked sensor banks per candidate (default: the algorithm's budget, e.g. estimator.q)
+    sensors: int | None = Field(default=None, ge=0)
+    #: banks that may be attacked (1-based; default: all)
+    banks: list[int] | None = Field(default=None, min_length=1)
+    kinds: list[SensorKind] | None = Field(default=None, min_length=1)
+    #: bound on |value|, amplitude, random scale and a ramp's value at the horizon
+    #: (default: the largest of the scenario's own sensor attacks, else 1)
+    amplitude: float | None = Field(default=None, gt=0)
+    #: [low, high] rad/s of sine attacks (default: [0, 2 x the largest modal frequency])
+    omega: tuple[float, float] | None = None
+    #: [low, high] seconds of attack start times (default: [0, start of the output window])
+    start: tuple[float, float] | None = None
+    #: Byzantine agents per candidate (default: estimator.f where the algorithm has one)
+    agents: int | None = Field(default=None, ge=0)
+    #: agents that may be Byzantine (default: all)
+    candidates: list[int] | None = Field(default=None, min_length=1)
+    strategies: list[AgentKind] | None = Field(default=None, min_length=1)
+    #: bound on |value| of the constant strategy and on the scale of huge / equivocation
+    value: float = Field(default=1e6, gt=0)
+    #: largest Bernoulli erasure probability searched (default: network.channel.drop_p)
+    drop_p: float | None = Field(default=None, ge=0.0, lt=1.0)
+    #: search run.seed (which seeds the channel) when erasures are searched
+    seed: bool = True
+    #: deterministic loss windows per candidate, each on one link, at most loss_length rounds
+    losses: int = Field(default=0, ge=0)
+    loss_length: int = Field(default=10, ge=1)
+    #: the maximised metric: the worst regular agent's `metric` over `over` in `block`
+    metric: Literal["error_2", "error_inf", "relative_error_2", "error_ratio"] | None = None
+    over: Literal["window", "final"] | tuple[float, float] | None = None
+    block: str | None = None
+    #: a candidate whose metric exceeds this violates (default: the paper's bound, if any)
+    threshold: float | None = Field(default=None, gt=0)
+
+    @model_validator(mode="after")
+    def _ranges(self) -> "RedteamSection":
+        for name in ("omega", "start"):
+            r = getattr(self, name)
+            if r is not None and not 0 <= r[0] <= r[1]:
+                raise ValueError(f"{name} must be [low, high] with 0 <= low <= high, got {list(r)}")
+        return self
+
+
 # --------------------------------------------------------------------------- whole file
 class Scenario(Strict):
     run: RunSection
@@ -271,3 +322,4 @@ class Scenario(Strict):
     attacks: list[Attack] = Field(default_factory=list)
     output: OutputSection = Field(default_factory=OutputSection)
     expect: list[Expectation] = Field(default_factory=list)
+    redteam: RedteamSection | None = None

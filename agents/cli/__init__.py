@@ -17,6 +17,7 @@ from .bench import bench
 from .compose import compose
 from .deploy import certs, router
 from .net import agent, monitor, plant, run
+from .redteam import redteam
 from .report import report
 from .sim import check, simulate
 from .sweep import sweep
@@ -30,7 +31,7 @@ def cli() -> None:
     """Resilient distributed state estimation: simulate, run and check scenarios."""
 
 
-for _command in (simulate, check, run, plant, agent, monitor, router, certs, compose, report, sweep, bench):
+for _command in (simulate, check, run, plant, agent, monitor, router, certs, compose, report, sweep, redteam, bench):
     cli.add_command(_command)
 
 
