@@ -46,8 +46,16 @@ def redteam(scenario: str | Path, *, budget: int = 200, jobs: int = 1, cluster: 
     ``seed`` seeds the optimiser (not the scenario). Returns the summary (also
     ``summary.json``) and every evaluation (also ``redteam.parquet``).
     """
+    from estimation.errors import RSEError
+
     from .. import api
     from ..executor import open_executor
+
+    try:
+        import optuna  # noqa: F401
+        import tomli_w  # noqa: F401
+    except ImportError:
+        raise RSEError("rse redteam needs optuna and tomli-w: pip install -e '.[redteam]'") from None
     from . import output
     from .search import Evaluator, open_study, search
     from .shrink import shrink

@@ -61,6 +61,8 @@ def write_table(out: Path, rows: list[dict[str, Any]]) -> Path:
 
     path = out / "redteam.parquet"
     df = pd.DataFrame(rows)
+    if "accepted" in df.columns:  # shrinking only: whether the proposal was kept
+        df["accepted"] = df["accepted"].astype("boolean")
     for c in df.columns:
         if df[c].dtype == object and c not in ("candidate", "overrides", "status", "phase"):
             df[c] = df[c].map(lambda v: None if v is None or (isinstance(v, float) and math.isnan(v)) else str(v))
