@@ -261,7 +261,7 @@ class Expectation(Strict):
 
 
 # --------------------------------------------------------------------------- [redteam]
-SensorKind = Literal["constant", "ramp", "sine", "random"]
+SensorKind = Literal["constant", "ramp", "sine", "random", "trajectory"]
 AgentKind = Literal["constant", "huge", "omission", "equivocation", "false_stamp", "replay", "crash", "cancellation"]
 
 

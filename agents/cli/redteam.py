@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -59,9 +61,25 @@ def redteam(scenario: Path, budget: int, jobs: int, cluster: str | None, metric:
     its run directory worst/, shrunk.toml when the bound (or --threshold) is exceeded,
     redteam.png, summary.json and recording.rrd (the search, live). See docs/redteam.md.
     """
+
+    def _terminate(*_: object) -> None:  # SIGTERM as Ctrl-C: the workers are cancelled, the files closed
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        res = _search(scenario, budget, jobs, cluster, metric, over, block, threshold, beyond, out, seed, overrides,
+                      shrink_budget, no_rerun, png, progress)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    _report(res, jobs, png, no_rerun)
+
+
+def _search(scenario: Path, budget: int, jobs: int, cluster: str | None, metric: str | None, over: str | None,
+            block: str | None, threshold: float | None, beyond: bool, out: Path | None, seed: int,
+            overrides: tuple[str, ...], shrink_budget: int, no_rerun: bool, png: bool, progress: bool) -> Any:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from ..console import err, out as console
+    from ..console import err
     from ..redteam import redteam as run_redteam
 
     bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[best]}"),
@@ -79,6 +97,12 @@ def redteam(scenario: Path, budget: int, jobs: int, cluster: str | None, metric:
                           over=_over(over), block=block, threshold=threshold, out=out, seed=seed, overrides=overrides,
                           rerun=not no_rerun, png=png, shrink_budget=shrink_budget, on_eval=on_eval,
                           say=lambda m: bar.console.print(m))
+    return res
+
+
+def _report(res: Any, jobs: int, png: bool, no_rerun: bool) -> None:
+    from ..console import out as console
+
     s = res.summary
     w = s["worst"]
     console.print(f"{s['evaluations']} evaluations of {s['metric']}")

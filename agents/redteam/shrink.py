@@ -7,11 +7,12 @@ simpler than the current candidate, so the result never has more active componen
 
 1. fewer components: drop one attacked sensor, one Byzantine agent, one loss window, or
    switch the erasures off;
-2. simpler waveforms: a ramp, sine or random sensor attack becomes a constant one;
+2. simpler waveforms: a ramp, sine, random or trajectory sensor attack becomes a constant one;
 3. shorter windows: an attack starts later (the latest start of the space, then halfway),
    a loss window is halved;
 4. smaller and rounder values: a magnitude halved, every float rounded to 1, 2 or 3
-   significant digits (start times upwards: a shorter window), the channel seed set to 0.
+   significant digits (start times upwards: a shorter window; a trajectory's direction to one
+   digit), the channel seed set to 0.
 """
 
 from __future__ import annotations
@@ -101,6 +102,11 @@ def proposals(cand: dict[str, Any], space: Space) -> Iterator[dict[str, Any]]:
                             c = copy.deepcopy(cand)
                             c[group][i][key] = r
                             yield c
+    for i, s in enumerate(cand["sensor"]):
+        if "direction" in s and any(_sig_digits(x) > 1 for x in s["direction"]):
+            c = copy.deepcopy(cand)
+            c["sensor"][i]["direction"] = [round_sig(x, 1) for x in s["direction"]]
+            yield c
     if ch.get("drop_p", 0.0) > 0:
         for d in range(1, min(_sig_digits(ch["drop_p"]), 4)):
             c = copy.deepcopy(cand)

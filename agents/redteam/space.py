@@ -28,7 +28,7 @@ from estimation.errors import ScenarioError
 __all__ = ["MetricSpec", "Space", "derive", "METRICS", "SENSOR_KINDS", "AGENT_KINDS", "active_components"]
 
 METRICS = ("error_2", "error_inf", "relative_error_2", "error_ratio")
-SENSOR_KINDS = ("constant", "ramp", "sine", "random")
+SENSOR_KINDS = ("constant", "ramp", "sine", "random", "trajectory")
 AGENT_KINDS = ("constant", "huge", "omission", "equivocation", "false_stamp", "replay", "crash", "cancellation")
 #: algorithm -> (estimator key of its sensor-attack budget, of its Byzantine-agent budget)
 BUDGETS = {"lee_kim_shim": ("q", None), "median_bank": ("M", None), "mao_tabuada": ("s", None), "lfre": (None, "f")}
@@ -85,6 +85,8 @@ class Space:
     links: list[tuple[int, int]] = field(default_factory=list)
     rounds: int = 1
     dt: float = 1.0
+    #: an LTI plant's (Ad, C, x0, bank rows) for dynamics-consistent ("trajectory") candidates
+    lti: dict[str, Any] | None = field(default=None, repr=False)
     kept_attacks: list[dict] = field(default_factory=list)  # the scenario's attacks of targets not searched
     base_losses: list[dict] = field(default_factory=list)
 
@@ -118,6 +120,8 @@ class Space:
             if kind == "sine":
                 att["omega"] = trial.suggest_float(f"s{s}_omega", *self.omega)
                 att["phase"] = trial.suggest_float(f"s{s}_phase", 0.0, 2 * math.pi)
+            elif kind == "trajectory":
+                att["direction"] = [trial.suggest_float(f"s{s}_d{j}", -1.0, 1.0) for j in range(len(self.lti["x0"]))]
             cand["sensor"].append(att)
         used: set[int] = set()
         for a in range(self.agents):
@@ -165,6 +169,8 @@ class Space:
                 t.update(amplitude=size, omega=float(s["omega"]), phase=float(s["phase"]))
             elif s["kind"] == "random":
                 t["scale"] = abs(size)
+            elif s["kind"] == "trajectory":
+                t["x0_attack"] = self.trajectory_x0(int(s["bank"]), s["direction"], size)
             out.append(t)
         for a in cand["agent"]:
             t = {"target": "agent", "agents": [int(a["agent"])], "kind": a["kind"], "start": float(a["start"])}
@@ -178,6 +184,20 @@ class Space:
                 t["payload"] = a["payload"]
             out.append(t)
         return out
+
+    def trajectory_x0(self, bank: int, direction: list[float], size: float) -> list[float]:
+        """``x0_attack = x0 + d`` with ``d`` along ``direction``, scaled so that the attack on
+        ``bank``, ``C Ad^k d`` (Mao, Tabuada's dynamics-consistent attack), peaks at ``|size|``
+        over the horizon."""
+        lti = self.lti
+        u = np.asarray(direction, dtype=float)
+        C = lti["C"][lti["rows"][bank - 1]]
+        peak, v = 0.0, u.copy()
+        for _ in range(self.rounds + 1):
+            peak = max(peak, float(np.max(np.abs(C @ v))))
+            v = lti["Ad"] @ v
+        d = u * (abs(size) / peak) if peak > 0 and math.isfinite(peak) else np.zeros_like(u)
+        return [float(x) for x in lti["x0"] + d]
 
     def overrides(self, cand: dict[str, Any]) -> list[str]:
         """``KEY=VALUE`` strings (TOML values) that turn the scenario into this candidate."""
@@ -266,7 +286,13 @@ def derive(exp: Any, *, beyond: bool = False, metric: str | None = None, over: A
     bad = [b for b in sp.banks if not 1 <= b <= nb]
     if bad:
         raise _bad(f"redteam.banks: no sensor bank {bad[0]}; banks are 1..{nb}", src)
-    sp.kinds = list(rt.kinds) if rt.kinds is not None else list(SENSOR_KINDS)
+    lti_ok = exp.stepper is None and exp.n <= 50
+    sp.kinds = list(rt.kinds) if rt.kinds is not None else [k for k in SENSOR_KINDS if k != "trajectory" or lti_ok]
+    if "trajectory" in sp.kinds:
+        if exp.stepper is not None:
+            raise _bad(f"redteam.kinds: 'trajectory' needs an LTI plant; model {sc.plant.model!r} has its own step", src)
+        sp.lti = {"Ad": np.asarray(exp.Ad, dtype=float), "C": np.asarray(exp.plant.C, dtype=float),
+                  "x0": np.asarray(exp.x0, dtype=float), "rows": [np.asarray(r) for r in exp.bank_rows]}
     sizes = [abs(x) for a in sc.attacks if a.target == "sensor" for x in (a.value, a.amplitude, a.scale) if x]
     sp.amplitude = float(rt.amplitude if rt.amplitude is not None else (max(sizes) if sizes else 1.0))
     sp.omega = tuple(rt.omega) if rt.omega is not None else _modal_band(exp)

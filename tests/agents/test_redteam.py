@@ -26,7 +26,7 @@ SHORT = ["run.dt=0.02", "run.duration=8.0", "output.window=[6.0, 8.0]", "expect=
 def test_space_derived_from_lee_kim_shim():
     sp, spec = derive(api.load(LKS))
     assert (sp.q, sp.f, sp.sensors, sp.agents) == (1, None, 1, 0)
-    assert sp.banks == [1, 2, 3, 4, 5] and sp.kinds == ["constant", "ramp", "sine", "random"]
+    assert sp.banks == [1, 2, 3, 4, 5] and sp.kinds == ["constant", "ramp", "sine", "random", "trajectory"]
     assert sp.amplitude == pytest.approx(math.pi / 3)  # the scenario's own attack sets the bound
     assert sp.omega[0] == 0 and sp.omega[1] == pytest.approx(2 * 20.27, abs=0.1)  # twice the top modal frequency
     assert sp.start == (0.0, 30.0)  # up to the start of the window
@@ -101,6 +101,23 @@ def test_candidate_overrides_build_the_attacks():
     assert (byz.agents, byz.kind, byz.shift, byz.payload) == ([7], "false_stamp", -4, "estimate")
     assert e.scenario.network.channel.drop_p == 0.125 and e.seed == 99
     assert active_components(cand) == 2
+
+
+def test_trajectory_candidate_is_dynamics_consistent_and_bounded():
+    import numpy as np
+
+    exp = api.load(LKS, set=SHORT)
+    sp, _ = derive(exp)
+    u = [0.5, -0.3, 0.2, 0.1, -0.9, 0.4]
+    cand = {"sensor": [{"bank": 4, "kind": "trajectory", "size": -0.75, "start": 2.0, "direction": u}],
+            "agent": [], "channel": {}}
+    (at,) = api.load(LKS, set=SHORT + sp.overrides(cand)).scenario.attacks
+    d = np.asarray(at.x0_attack) - exp.x0
+    assert np.allclose(d / np.linalg.norm(d), np.asarray(u) / np.linalg.norm(u))  # along the sampled direction
+    C, v, peak = exp.plant.C[exp.bank_rows[3]], d.copy(), 0.0
+    for _ in range(exp.n_rounds + 1):  # a_4[k] = C_4 Ad^k (x0_attack - x0) peaks at |size|
+        peak, v = max(peak, float(np.max(np.abs(C @ v)))), exp.Ad @ v
+    assert peak == pytest.approx(0.75, rel=1e-12)
 
 
 def test_shrinking_removes_components_and_rounds_values():
