@@ -152,5 +152,5 @@ def redteam(scenario: str | Path, *, budget: int = 200, jobs: int = 1, cluster: 
     write_json(out_dir / "summary.json", summary)
     if png:
         output.figure(out_dir, rows, label=spec.label(), bound=limit,
-                      bound_name="bound" if bound is None or limit != bound["value"] else bound["name"].split(":")[0][:40])
+                      bound_name="threshold" if bound is None or limit != bound["value"] else bound["short"])
     return RedteamResult(out_dir, summary, rows)
