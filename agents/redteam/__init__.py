@@ -48,7 +48,7 @@ def redteam(scenario: str | Path, *, budget: int = 200, jobs: int = 1, cluster: 
     """
     from estimation.errors import RSEError
 
-    from .. import api
+    from .. import runs  # the one-run core (agents.api re-exports it)
     from ..executor import open_executor
 
     try:
@@ -62,7 +62,7 @@ def redteam(scenario: str | Path, *, budget: int = 200, jobs: int = 1, cluster: 
 
     source = str(scenario)
     base = [str(o) for o in overrides]
-    exp = api.load(source, set=base)
+    exp = runs.load(source, set=base)
     space, spec = derive(exp, beyond=beyond, metric=metric, over=over, block=block)
     bound = output.paper_bound(exp, spec)
     rt_threshold = exp.scenario.redteam.threshold if exp.scenario.redteam is not None else None
@@ -122,7 +122,7 @@ def redteam(scenario: str | Path, *, budget: int = 200, jobs: int = 1, cluster: 
     for name, cand, value in [("worst", worst_cand, worst["metric"])] + (
             [("shrunk", shrunk["candidate"], shrunk["value"])] if shrunk else []):
         ov = ev.overrides(cand)
-        e = api.load(source, set=ov)
+        e = runs.load(source, set=ov)
         header = (f"rse redteam: the {name} attack found on {scen_name} ({spec.label()} = {value!r})\n"
                   f"that is {scen_name} with these overrides:\n" + "\n".join(f"  --set {o}" for o in ov) +
                   f"\nreproduce: rse simulate {name}.toml")

@@ -32,10 +32,10 @@ def paper_bound(exp: Any, spec: MetricSpec) -> dict[str, Any] | None:
     for the Lyapunov variant) on the error norms. Mitra et al.: Theorem 2's mean-square
     stability, i.e. convergence: a final relative error above 1e-6 breaks it. ``applies``
     is False for the non-resilient variants (the bound is the resilient estimator's)."""
-    from .. import api
+    from .. import runs  # the one-run core (agents.api re-exports it)
 
     est = exp.scenario.estimator
-    conds = api.check(exp)
+    conds = runs.check(exp)
     if est.algorithm == "lee_kim_shim" and spec.metric in ("error_inf", "error_2"):
         want = "Theorem 3" if est.variant == "lyapunov" else "Theorem 1 bound"
         for c in conds:
@@ -96,11 +96,11 @@ def _plain(o: Any) -> Any:
 def replay(scenario: Path, run_dir: Path, spec: MetricSpec, *, rerun: bool) -> float:
     """Simulate a written scenario file (as ``rse simulate`` does) into ``run_dir`` with its
     recording; returns the metric, to check it reproduces the search's value exactly."""
-    from .. import api
+    from .. import runs  # the one-run core (agents.api re-exports it)
     from ..rundir import write_manifest
     from .search import metric_value
 
-    exp = api.load(scenario)
+    exp = runs.load(scenario)
     run_id = uuid.uuid4().hex[:12]
     run_dir.mkdir(parents=True, exist_ok=True)
     write_manifest(run_dir, exp, exp.frozen, driver="simulate", run_id=run_id)
@@ -110,7 +110,7 @@ def replay(scenario: Path, run_dir: Path, spec: MetricSpec, *, rerun: bool) -> f
 
         dash = Dashboard(exp, run_id=run_id, options=DashboardOptions(rrd=run_dir / "recording.rrd"))
     try:
-        res = api.simulate(exp, dashboard=dash)
+        res = runs.simulate(exp, dashboard=dash)
     finally:
         if dash is not None:
             dash.close()

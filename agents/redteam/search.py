@@ -45,12 +45,12 @@ def evaluate(source: str, overrides: Sequence[str], spec: MetricSpec) -> dict[st
     (a worker task: module-level, picklable arguments)."""
     from estimation.errors import ScenarioError
 
-    from .. import api
+    from .. import runs  # the one-run core (agents.api re-exports it)
 
     t0 = time.perf_counter()
     try:
-        exp = api.load(source, set=list(overrides))
-        res = api.simulate(exp)
+        exp = runs.load(source, set=list(overrides))
+        res = runs.simulate(exp)
         value, status = metric_value(exp, res, spec), "ok"
     except ScenarioError as exc:
         value, status = math.nan, f"invalid: {exc}"
