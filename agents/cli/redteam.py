@@ -114,7 +114,7 @@ def _report(res: Any, jobs: int, png: bool, no_rerun: bool) -> None:
                   f"rse simulate worst.toml gives {w['replayed']!r}: {'reproduced exactly' if w['reproduced'] else 'NOT REPRODUCED'}")
     b = s["bound"]
     if b is not None:
-        console.print(f"paper bound: {b['name']} = {b['value']:.6g}" + ("" if b["applies"] else
+        console.print(f"paper bound ({b['name']}): {b['value']:.6g}" + ("" if b["applies"] else
                       " (the estimator is outside the theorem's assumptions: shown for comparison)"))
     if s["threshold"] is not None:
         verdict = "held" if s["held"] else "VIOLATED"
@@ -123,6 +123,8 @@ def _report(res: Any, jobs: int, png: bool, no_rerun: bool) -> None:
         sh = s["shrunk"]
         console.print(f"shrunk: {sh['value']:.6g} with {sh['components']} active component(s) "
                       f"({sh['evaluations']} evaluations): {res.out / 'shrunk.toml'}")
+        if sh["components"] == 0:
+            console.print("the scenario exceeds the threshold without any attack: the violation is not the attack's")
     console.print(f"output: {res.out} (worst.toml, worst/, redteam.parquet, summary.json"
                   + (", redteam.png" if png else "") + ("" if no_rerun else ", recording.rrd") + ")")
     if not math.isfinite(w["value"]):

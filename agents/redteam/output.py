@@ -49,8 +49,8 @@ def paper_bound(exp: Any, spec: MetricSpec) -> dict[str, Any] | None:
                         "applies": est.variant != "linear", "condition": None}
     if est.algorithm == "lfre" and spec.metric == "relative_error_2" and spec.over == "final":
         mss = next((c for c in conds if c.name.startswith("MSS")), None)
-        return {"name": "Theorem 2 (mean-square stability): every regular agent converges, "
-                        f"final relative error <= {MSS_CONVERGED:g}",
+        return {"name": "Theorem 2 (mean-square stability): every regular agent converges; "
+                        "a final relative error above this breaks it",
                 "short": "Theorem 2 (MSS): converged", "value": MSS_CONVERGED,
                 "applies": est.rule != "average" and (mss is None or mss.holds is not False),
                 "condition": None if mss is None else f"{mss.name}: {mss.detail} ({'holds' if mss.holds else 'fails'})"}

@@ -184,3 +184,24 @@ def test_byzantine_search_on_mitra_cells_short(tmp_path):
     assert s["bound"]["value"] == 1e-6 and "MSS" in s["bound"]["condition"]
     assert s["worst"]["reproduced"] and all(r["status"] == "ok" for r in res.rows)
     assert all(len(json.loads(r["candidate"])["agent"]) == 1 for r in res.rows if r["phase"] == "search")
+
+
+@pytest.mark.slow
+def test_acceptance_mitra_nonresilient_one_byzantine_agent_freezes_a_regular_one(tmp_path):
+    res = redteam(SC / "mitra_nonresilient.toml", budget=100, jobs=2, out=tmp_path / "m", rerun=False, png=False,
+                  shrink_budget=0)
+    assert res.summary["evaluations"] == 100 and res.summary["worst"]["value"] >= 0.5
+    assert res.summary["worst"]["reproduced"] and res.summary["worst"]["components"] == 1
+
+
+@pytest.mark.slow
+def test_acceptance_lee_kim_shim_beyond_breaks_theorem_1_and_shrinks(tmp_path):
+    res = redteam(LKS, budget=100, jobs=2, beyond=True, overrides=["redteam.amplitude=10"], out=tmp_path / "l",
+                  rerun=False, png=False, shrink_budget=40)
+    s = res.summary
+    bound = s["bound"]["value"]
+    assert s["bound"]["name"].startswith("Theorem 1") and bound == pytest.approx(1.61803, abs=1e-5)
+    assert s["worst"]["value"] > bound and s["held"] is False and s["worst"]["reproduced"]
+    assert s["shrunk"]["value"] > bound and s["shrunk"]["components"] <= s["worst"]["components"]
+    exp = api.load(res.out / "shrunk.toml")
+    assert metric_value(exp, api.simulate(exp), derive(exp)[1]) == s["shrunk"]["value"]
