@@ -10,9 +10,10 @@ simpler than the current candidate, so the result never has more active componen
 2. simpler waveforms: a ramp, sine, random or trajectory sensor attack becomes a constant one;
 3. shorter windows: an attack starts later (the latest start of the space, then halfway),
    a loss window is halved;
-4. smaller and rounder values: a magnitude halved, every float rounded to 1, 2 or 3
+4. rounder values: a constant strategy's value 0, every float rounded to 1, 2 or 3
    significant digits (start times upwards: a shorter window; a trajectory's direction to one
-   digit), the channel seed set to 0.
+   digit), the channel seed 0;
+5. smaller magnitudes: divided by 10, then by 2, down to 1e-3 of the space's bound.
 """
 
 from __future__ import annotations
@@ -85,14 +86,13 @@ def proposals(cand: dict[str, Any], space: Space) -> Iterator[dict[str, Any]]:
             c = copy.deepcopy(cand)
             c["channel"]["losses"][i]["length"] = w["length"] // 2
             yield c
-    # 4. smaller, rounder values
+    # 4. rounder values: a constant strategy's value 0, floats to 1-3 significant digits, seed 0
     for group in ("sensor", "agent"):
         for i, s in enumerate(cand[group]):
-            for key in ("size", "value", "scale"):
-                if key in s and s[key] != 0:
-                    c = copy.deepcopy(cand)
-                    c[group][i][key] = s[key] / 2
-                    yield c
+            if group == "agent" and s.get("value", 0.0) != 0:
+                c = copy.deepcopy(cand)
+                c[group][i]["value"] = 0.0
+                yield c
             for key in _FLOATS:
                 if key in s:
                     for d in range(1, min(_sig_digits(s[key]), 4)):
@@ -116,6 +116,15 @@ def proposals(cand: dict[str, Any], space: Space) -> Iterator[dict[str, Any]]:
         c = copy.deepcopy(cand)
         c["channel"]["seed"] = 0
         yield c
+    # 5. smaller magnitudes: divided by 10, then halved, down to 1e-3 of the space's bound
+    for group, bound in (("sensor", space.amplitude), ("agent", space.value)):
+        for i, s in enumerate(cand[group]):
+            for key in ("size", "value", "scale"):
+                for factor in (10.0, 2.0):
+                    if key in s and abs(s[key]) / factor >= 1e-3 * bound:
+                        c = copy.deepcopy(cand)
+                        c[group][i][key] = s[key] / factor
+                        yield c
 
 
 def shrink(cand: dict[str, Any], value: float, space: Space, evaluate: Callable[[Sequence[dict]], list[dict]],

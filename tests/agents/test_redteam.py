@@ -135,10 +135,15 @@ def test_shrinking_removes_components_and_rounds_values():
 
     assert all(active_components(p) <= active_components(cand) for p in proposals(cand, sp))
     small, value, n = shrink(cand, fake([cand])[0]["metric"], sp, fake, lambda v: v > 10, batch=3, max_evals=400)
-    # start moved to the latest start of the space (225: the window), value halved twice then rounded
-    assert small == {"sensor": [], "agent": [{"agent": 3, "kind": "constant", "start": 225.0, "value": 30.0}],
+    # start moved to the latest start of the space (225: the window), the value rounded (0 no longer
+    # violates; division stops at 1e-3 of the space's bound 1e6), the seed 0
+    assert small == {"sensor": [], "agent": [{"agent": 3, "kind": "constant", "start": 225.0, "value": 100.0}],
                      "channel": {"drop_p": 0.0, "seed": 0, "losses": []}}
-    assert value == pytest.approx(30 / 2.125) and active_components(small) == 1
+    assert value == pytest.approx(100 / 2.125) and active_components(small) == 1
+    # with a smaller bound the value is divided further: 100 -> 50 -> 25 (12.5 / 2.125 < 10)
+    sp.value = 1e3
+    small, value, _ = shrink(cand, fake([cand])[0]["metric"], sp, fake, lambda v: v > 10, batch=3, max_evals=400)
+    assert small["agent"][0]["value"] == 25.0 and value == pytest.approx(25 / 2.125)
     assert n <= 400
 
 
