@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from .space import MetricSpec, Space, active_components
+from .warm import warm_start
 
 __all__ = ["evaluate", "metric_value", "Evaluator", "search"]
 
@@ -129,6 +130,9 @@ def search(evaluator: Evaluator, study: Any, *, budget: int, batch: int,
     import optuna
 
     rows = previous_rows(study)
+    if not study.get_trials(deepcopy=False):  # a new study starts from the scenario's own attacks
+        for params in warm_start(evaluator.space)[:budget]:
+            study.enqueue_trial(params, skip_if_exists=True)
     best = max((r["metric"] for r in rows if not math.isnan(r["metric"])), default=-math.inf)
     for r in rows:
         if on_eval is not None:

@@ -88,6 +88,8 @@ class Space:
     #: an LTI plant's (Ad, C, x0, bank rows) for dynamics-consistent ("trajectory") candidates
     lti: dict[str, Any] | None = field(default=None, repr=False)
     kept_attacks: list[dict] = field(default_factory=list)  # the scenario's attacks of targets not searched
+    own: list[Any] = field(default_factory=list, repr=False)  # the scenario's own attacks (validated models)
+    base_seed: int = 0  # the scenario's run.seed
     base_losses: list[dict] = field(default_factory=list)
 
     @property
@@ -334,6 +336,7 @@ def derive(exp: Any, *, beyond: bool = False, metric: str | None = None, over: A
     searched = {"sensor"} if sp.sensors else set()
     if sp.agents:
         searched.add("agent")
+    sp.own, sp.base_seed = list(sc.attacks), int(sc.run.seed)
     sp.kept_attacks = [_plain(a.model_dump(exclude_defaults=True) | {"target": a.target}) for a in sc.attacks
                        if a.target not in searched]
     if sp.empty:

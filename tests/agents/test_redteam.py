@@ -14,6 +14,7 @@ from agents.cli import cli
 from agents.redteam import active_components, derive, redteam
 from agents.redteam.search import metric_value
 from agents.redteam.shrink import proposals, round_sig, shrink
+from agents.redteam.warm import warm_start
 from estimation.errors import ScenarioError
 
 SC = Path(__file__).resolve().parents[2] / "scenarios"
@@ -210,3 +211,12 @@ def test_acceptance_lee_kim_shim_beyond_breaks_theorem_1_and_shrinks(tmp_path):
     assert s["shrunk"]["value"] > bound and s["shrunk"]["components"] <= s["worst"]["components"]
     exp = api.load(res.out / "shrunk.toml")
     assert metric_value(exp, api.simulate(exp), derive(exp)[1]) == s["shrunk"]["value"]
+
+
+def test_warm_start_is_the_scenarios_attack_then_its_escalation():
+    sp, _ = derive(api.load(LKS, set=["redteam.amplitude=10"]), beyond=True)
+    own, escalated = warm_start(sp)
+    assert own == {"s0_kind": "constant", "s0_bank": 1, "s0_size": math.pi / 3, "s0_start": 10.0}
+    assert escalated == {**own, "s0_size": 10.0, "s1_kind": "constant", "s1_bank": 2, "s1_size": 10.0, "s1_start": 10.0}
+    sp, _ = derive(api.load(MITRA))
+    assert warm_start(sp) == [{"a0_agent": 5, "a0_kind": "cancellation", "a0_start": 0.0, "drop_p": 0.32, "seed": 3}]
