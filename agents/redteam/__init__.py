@@ -95,7 +95,7 @@ def redteam(scenario: str | Path, *, budget: int = 200, jobs: int = 1, cluster: 
             t_search = time.perf_counter() - t0
             ok = [r for r in rows if r["phase"] == "search" and not math.isnan(r["metric"])]
             if not ok:
-                raise RuntimeError("no candidate could be evaluated: " + "; ".join({r['status'] for r in rows})[:300])
+                raise RSEError("no candidate could be evaluated: " + "; ".join({r['status'] for r in rows})[:300])
             worst = max(ok, key=lambda r: r["metric"])
             worst_cand = json.loads(worst["candidate"])
             shrunk = None
