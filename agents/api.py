@@ -59,7 +59,7 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
     from estimation.errors import EXIT_INTERRUPTED, RSEError, ScenarioError
 
     from .net.launcher import launch
-    from .net.roles import RunConfig
+    from .net.protocol import RunConfig
     from .rundir import default_run_dir
 
     try:

@@ -67,7 +67,7 @@ def measure_run(processes: int, rounds: int, *, deadline: float = 2.0, skeleton:
     """
     from agents.api import load_experiment
     from agents.net.launcher import launch
-    from agents.net.roles import RunConfig
+    from agents.net.protocol import RunConfig
 
     overrides = team_overrides(processes, rounds)
     exp, frozen = load_experiment(SCENARIO, overrides, None)

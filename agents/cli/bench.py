@@ -85,7 +85,7 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
 
     from ..console import out as console
     from ..net.launcher import launch
-    from ..net.roles import RunConfig
+    from ..net.protocol import RunConfig
 
     exp, frozen = load_experiment(scenario, overrides, seed)
     with tempfile.TemporaryDirectory(prefix="rse-bench-") as tmp:

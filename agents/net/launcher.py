@@ -48,7 +48,7 @@ from estimation.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError,
                                TransportError, describe, exit_status)
 
 from .parent import die_with_parent as _die_with_parent
-from .roles import RunConfig
+from .protocol import RunConfig
 
 log = logging.getLogger("rse.net")
 
@@ -112,8 +112,6 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
     from transport.zenoh_bus import ZenohBus
     from transport.zenoh_session import close_session
 
-    from . import roles
-
     loop = asyncio.get_running_loop()
     task = asyncio.current_task()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -142,14 +140,18 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
         bus = ZenohBus(session, loop)
         keys = Keys(spec.run_id)
         if spec.role == "plant":
-            return await roles.run_plant(exp, bus, keys, spec.cfg)
+            from .plant import run_plant
+
+            return await run_plant(exp, bus, keys, spec.cfg)
         if spec.role == "agent":
             node = None
             if spec.node is not None:
                 import pickle
 
                 node = pickle.loads(_blob(spec.node))
-            return await roles.run_agent(exp, spec.agent_id, bus, keys, spec.cfg, node=node)
+            from .agent import run_agent
+
+            return await run_agent(exp, spec.agent_id, bus, keys, spec.cfg, node=node)
         conn = spec.conn
 
         def progress(kind: str, data: Any) -> None:
@@ -168,7 +170,9 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
                 # one recording per run: its id is the run id
                 dash = Dashboard(exp, run_id=spec.run_id, options=spec.dashboard)
                 progress("urls", dict(spec.dashboard.urls))
-            res = await roles.run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress, dashboard=dash)
+            from .monitor import run_monitor
+
+            res = await run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress, dashboard=dash)
             if dash is not None and spec.dashboard.serve_web:
                 # the run is over: keep serving the recording until SIGINT / SIGTERM
                 bus.close()

@@ -1,0 +1,386 @@
+"""The agent process: one :class:`~agents.node.AgentNode` driven by the plant's
+measurement messages and its in-neighbours' estimates (the protocol:
+:mod:`agents.net.protocol`)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+
+from estimation.errors import MessageError, RSEError, TransportError
+from transport.codec import PLANT_ID, Schema, decode
+from transport.keys import Keys
+from transport.zenoh_bus import Bus
+
+from .protocol import Role, RunConfig, _msg, diagnostics_meta
+from .view import NetworkView, reads_view
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
+
+log = logging.getLogger("rse.net")
+
+
+class AgentProcess(Role):
+    name = "agent"
+
+    def __init__(self, exp: Experiment, agent_id: int, bus: Bus, keys: Keys, cfg: RunConfig,
+                 *, node_hook: Callable[[Any], None] | None = None, node: Any = None) -> None:
+        super().__init__(exp, bus, keys, cfg)
+        if agent_id not in exp.agent_ids:
+            raise RSEError(f"no agent {agent_id} in this scenario; agents are {', '.join(map(str, exp.agent_ids))}")
+        self.id = agent_id
+        self.index = i = exp.agent_ids.index(agent_id)
+        self.name = f"agent {agent_id}"
+        if node is None:
+            from agents.simulate import make_channel, make_nodes
+
+            node = make_nodes(exp, make_channel(exp))[i]
+        self.node = node
+        self.est_schema = Schema({"est": {"x": self._payload_shape()}})
+        if node_hook is not None:
+            node_hook(self.node)
+        self.in_ids = [exp.agent_ids[j] for j in exp.in_neighbours(i)]
+        self.out_ids = [exp.agent_ids[j] for j in exp.out_neighbours(i)]
+        self.member = False
+        self.meas: dict[int, tuple[np.ndarray | None, np.ndarray, float]] = {}
+        self.arrived: dict[int, set[int]] = {}
+        self.last = -1
+        self.stop: tuple[int, np.ndarray, float] | None = None
+        self.finished = asyncio.Event()
+        self.plant_seen_at: float | None = None
+        self.running_team = False
+        self.rounds_run = 0
+        self.skipped = 0
+        self.waited_out = 0
+        self._timer: asyncio.TimerHandle | None = None
+        self._own_estimate = getattr(self.node, "estimate", None)
+        from agents.monitor import has_diagnostics
+
+        self._diagnostics = has_diagnostics(self.node.estimator)
+        self._est_key = keys.est(agent_id)
+        self._done_key = keys.ctl("done", agent_id)
+        self._ready_key = keys.ctl("ready", agent_id)
+        self._loc_key = keys.plant_loc(agent_id)
+        self._last_ready = 0.0
+        self.silent_until = 0
+        #: an omniscient Byzantine strategy's view of its receivers (see NetworkView)
+        self.view: NetworkView | None = None
+        self._held: tuple[int, np.ndarray, float] | None = None  # lockstep: a round waiting for the view
+        self._error: Exception | None = None  # raised in the consumer's _step
+        if node.strategy is not None and reads_view(node.strategy):
+            self.view = NetworkView(exp, agent_id, node.channel)
+            node.view = self.view
+            self._done_schema = self.wire.done
+
+    def _payload_shape(self) -> tuple[int, ...]:
+        """The shape of an estimate message: a dry run of a copy of this agent's estimator
+        (every agent of a scenario publishes the same shape; others are rejected)."""
+        import copy
+
+        try:
+            est = copy.deepcopy(self.node.estimator)
+            return tuple(np.shape(est.step(0, None, {})))
+        except Exception:
+            return (self.exp.n,)
+
+    def on_reject(self, sender: int | None) -> None:
+        if sender is not None:
+            self.node.reject(sender)
+
+    def on_alive(self, role: str, i: int, alive: bool) -> None:
+        if role == "plant":
+            if alive:
+                self.plant_seen_at = time.monotonic()
+            elif self.stop is None:
+                log.warning("agent %d: the plant left", self.id)
+
+    def handle_data(self, key: str, payload: bytes) -> None:
+        if key == self._loc_key:
+            got = self.decode(key, payload, self.wire.loc)
+            if got is None:
+                return
+            m = got[1]
+            wait = m.arrays["wait"]
+            if len(wait) > 64 * max(1, len(self.in_ids)):
+                self.rejects.add(PLANT_ID, "range")
+                return
+            now = time.monotonic()
+            if m.kind == "ctl":
+                if m.meta.get("cmd") == "stop":
+                    self.stop = (m.stamp, wait, now)
+                return
+            self.running_team = True
+            member = bool(m.meta.get("member", False))
+            if member and not self.member:
+                self.member = True
+                if m.stamp > 0:
+                    self.silent_until = m.stamp + int(math.ceil(self.cfg.warmup / self.exp.dt))
+                log.info("agent %d: joined the team at round %d", self.id, m.stamp)
+            elif not member and self.member:
+                self.member = False
+                log.warning("agent %d: the plant no longer counts this agent; rejoining", self.id)
+            if not self.member or m.stamp <= self.last:
+                return
+            y = m.arrays["y"]
+            if y.size > self.wire.ny:
+                self.rejects.add(PLANT_ID, "range")
+                return
+            self.meas[m.stamp] = (None if m.meta.get("nomeas") else y, wait, now)
+            return
+        if self.view is not None:
+            self._handle_view(key, payload)
+            return
+        got = self.decode(key, payload, self.est_schema)
+        if got is None:
+            return
+        p, m = got
+        j = p.sender
+        if j not in self.node.links:
+            self.rejects.add(j, "neighbour")
+            return
+        self._take(j, m.stamp, m.arrays["x"])
+
+    def _take(self, j: int, stamp: int, x: np.ndarray) -> None:
+        """Hand a decoded estimate of in-neighbour ``j`` to the node (its channel decides)
+        and note its arrival for the lockstep wait lists."""
+        self.node.receive(j, stamp, x)
+        if stamp >= self.last - 2 and len(self.arrived) < 4096:
+            self.arrived.setdefault(stamp, set()).add(j)
+
+    def _handle_view(self, key: str, payload: bytes) -> None:
+        """A Byzantine agent with a view hears every estimate of the run and the done
+        reports of the agents it depends on: its own inbox, and the view's store."""
+        try:
+            p = self.keys.parse(key)
+        except MessageError:
+            self.rejects.add(None, "key")
+            return
+        if p.kind == "ctl":
+            try:
+                m = decode(payload, schema=self._done_schema, expected_sender=p.sender)
+            except MessageError as exc:
+                self.rejects.add(p.sender, exc.reason)
+                return
+            to, stamps = m.arrays["to"], m.arrays["stamps"]
+            if (p.sender not in self.view.index_of or stamps.size != to.size or to.size > self.exp.N
+                    or not all(float(v).is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
+                self.rejects.add(p.sender, "range")
+                return
+            self.view.add_done(p.sender, m.stamp, [(int(t), int(st)) for t, st in zip(to, stamps)])
+            return
+        j, receiver = p.sender, p.receiver
+        mine = receiver == self.id or (receiver is None and j in self.node.links)
+        if not mine and not (self.view.wants(j, receiver)):
+            return
+        try:
+            m = decode(payload, schema=self.est_schema, expected_sender=j, expected_receiver=receiver)
+        except MessageError as exc:
+            self.rejects.add(j, exc.reason)
+            if mine:
+                self.node.reject(j)
+            return
+        if self.view.wants(j, receiver):
+            self.view.add(j, receiver, m.stamp, m.arrays["x"])
+        if not mine:
+            return
+        if j not in self.node.links:
+            self.rejects.add(j, "neighbour")
+            return
+        self._take(j, m.stamp, m.arrays["x"])
+
+    def _release_held(self, now: float) -> bool:
+        """Lockstep, phase two of round k for an omniscient adversary: publish once the
+        view is complete (or the deadline passed). Returns whether it was published."""
+        k, out, t0 = self._held
+        view = self.view
+        if not view.ready(k, lambda s: ("agent", s) in self.alive):
+            if now < t0 + self.cfg.deadline:
+                self._tick_at(t0 + self.cfg.deadline)
+                return False
+            self.waited_out += 1
+            if self.waited_out in (1, 10, 100, 1000):
+                log.warning("agent %d: round %d published without a complete view (%d time(s))", self.id, k,
+                            self.waited_out)
+        self._held = None
+        self._publish_round(k, out)
+        return True
+
+    def _arrived_all(self, wait: np.ndarray) -> bool:
+        arrived = self.arrived
+        return all(int(j) in arrived.get(int(s), ()) for j, s in wait)
+
+    def _tick_at(self, when: float) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+        loop = asyncio.get_running_loop()
+        self._timer = loop.call_at(loop.time() + max(0.0, when - time.monotonic()), self.changed.set)
+
+    def _publish_round(self, k: int, out: np.ndarray) -> None:
+        node, bus = self.node, self.bus
+        if self.view is not None:
+            self.view.forget(k)
+        own = self._own_estimate(out) if self._own_estimate is not None else out
+        msg = node.publish(k, out) if node.strategy is not None else out
+        aid = self.id
+        drop = self.cfg.mode == "realtime"  # an estimate a neighbour cannot take now is dropped for it alone
+        try:
+            if k < self.silent_until:  # warming up after a late join: listen only
+                to, stamps = [], []
+            elif isinstance(msg, dict):
+                to, stamps = [], []
+                for tgt in self.out_ids:
+                    payload = msg.get(tgt)
+                    if payload is None:
+                        continue
+                    stamp = getattr(payload, "stamp", k)
+                    value = getattr(payload, "value", payload)
+                    bus.publish(self.keys.est(aid, tgt), _msg("est", aid, int(stamp), {"x": value}, receiver=tgt),
+                                droppable=drop)
+                    to.append(tgt)
+                    stamps.append(int(stamp))
+            else:
+                bus.publish(self._est_key, _msg("est", aid, k, {"x": msg}), droppable=drop)
+                to, stamps = self.out_ids, [k] * len(self.out_ids)
+        except MessageError as exc:  # a non-finite estimate cannot go on the wire
+            log.warning("agent %d: round %d message not sent: %s", aid, k, exc)
+            to, stamps = [], []
+        meta: dict[str, Any] = {}
+        if not np.all(np.isfinite(own)):
+            own, meta = np.zeros_like(own), {"nonfinite": True}
+        if self._diagnostics:
+            meta.update(diagnostics_meta(node.estimator))
+        bus.publish(self._done_key, _msg("done", aid, k, {"x": own, "to": np.array(to, dtype=float), "stamps": np.array(stamps, dtype=float)}, meta=meta or None))
+
+    def _step(self) -> None:
+        """Run every round that can run now."""
+        lockstep = self.cfg.mode == "lockstep"
+        now = time.monotonic()
+        if self._held is not None and not self._release_held(now):
+            return
+        while self.meas:
+            if lockstep:
+                k = min(self.meas)
+                y, wait, t_arr = self.meas[k]
+                if not self._arrived_all(wait):
+                    if now < t_arr + self.cfg.deadline:
+                        self._tick_at(t_arr + self.cfg.deadline)
+                        return
+                    self.waited_out += 1
+                    if self.waited_out in (1, 10, 100, 1000):
+                        log.warning("agent %d: round %d went on without some neighbours' messages (%d time(s))",
+                                    self.id, k, self.waited_out)
+                del self.meas[k]
+            else:
+                k = max(self.meas)
+                y = self.meas[k][0]
+                self.skipped += len(self.meas) - 1
+                self.meas.clear()
+            out = self.node.run_round(k, y)
+            self.last = k
+            self.rounds_run += 1
+            for s in [s for s in self.arrived if s < k - 2]:
+                del self.arrived[s]
+            if self.view is not None and lockstep and k >= self.silent_until:
+                self._held = (k, out, now)
+                if not self._release_held(now):
+                    return
+            else:
+                self._publish_round(k, out)
+        if self.stop is not None and not self.meas:
+            K, wait, t_arr = self.stop
+            if lockstep and self.member and not self._arrived_all(wait) and now < t_arr + self.cfg.deadline:
+                self._tick_at(t_arr + self.cfg.deadline)
+                return
+            self.finished.set()
+
+    def after_batch(self) -> bool:
+        # a member runs its rounds right here (the main loop wakes only when it must)
+        if not self.member or self._error is not None or ("plant", 0) not in self.alive:
+            return True
+        try:
+            self._step()
+        except Exception as exc:  # re-raised by the main loop
+            self._error = exc
+            return True
+        return self.finished.is_set() or not self.member
+
+    def _maybe_ready(self) -> None:
+        if self.member or self.plant_seen_at is None or ("monitor", 0) not in self.alive:
+            return
+        now = time.monotonic()
+        neighbours = set(self.in_ids) | set(self.out_ids)
+        seen = {i for (r, i) in self.alive if r == "agent"}
+        if not neighbours <= seen and not (self.running_team and now - self.plant_seen_at > 1.0):
+            return
+        if now - self._last_ready >= 0.1:
+            if not self._last_ready:
+                log.debug("agent %d: ready", self.id)
+            self._last_ready = now
+            self.bus.publish(self._ready_key, _msg("ctl", self.id, 0, {}))
+
+    async def run(self) -> dict[str, Any]:
+        exp, keys, bus, cfg = self.exp, self.keys, self.bus, self.cfg
+        bus.subscribe(self._loc_key, self.queue)
+        if self.view is None:
+            for j in self.in_ids:
+                bus.subscribe(keys.est(j), self.queue)
+            bus.subscribe(keys.est_pattern(to=self.id), self.queue)
+        else:  # also the estimates its receivers will use, and the reports it waits for
+            for j in sorted(set(self.in_ids) | set(self.view.needed)):
+                bus.subscribe(keys.est(j), self.queue)
+            for j in sorted({self.id} | self.view.out_set):
+                bus.subscribe(keys.est_pattern(to=j), self.queue)
+            for s in self.view.needed:
+                bus.subscribe(keys.ctl("done", s), self.queue)
+        bus.watch(keys.alive_pattern(), self.queue)
+        bus.announce(keys.alive("agent", self.id))
+        consumer = asyncio.ensure_future(self.consume())
+        t_start = time.monotonic()
+        try:
+            while not self.finished.is_set():
+                self.changed.clear()
+                if self._error is not None:
+                    raise self._error
+                self._step()
+                if self.finished.is_set():
+                    break
+                if not self.member:
+                    self._maybe_ready()
+                    if self.stop is not None:
+                        break
+                    if not self.running_team and time.monotonic() - t_start > cfg.startup_timeout:
+                        raise TransportError(f"agent {self.id}: no plant found within {cfg.startup_timeout:g} s")
+                    timeout = 0.1
+                else:
+                    timeout = None
+                if ("plant", 0) not in self.alive and self.plant_seen_at is not None and self.stop is None:
+                    # the plant left without stopping the team: give it a moment, then leave
+                    await asyncio.sleep(max(0.5, cfg.deadline))
+                    if ("plant", 0) not in self.alive and self.stop is None:
+                        raise TransportError(f"agent {self.id}: the plant left before the end of the run")
+                try:
+                    await asyncio.wait_for(self.changed.wait(), timeout)
+                except asyncio.TimeoutError:
+                    pass
+            links = np.array([[j, c.sent, c.delivered, c.dropped, c.late, c.rejected] for j, c in self.node.links.items()],
+                             dtype=float).reshape(-1, 6)
+            self.send_stats(self.id, links, rounds=self.rounds_run, skipped=self.skipped, waited_out=self.waited_out)
+            await asyncio.sleep(0.05)
+            return {"rounds": self.rounds_run}
+        finally:
+            consumer.cancel()
+            if self._timer is not None:
+                self._timer.cancel()
+
+
+async def run_agent(exp: Experiment, agent_id: int, bus: Bus, keys: Keys, cfg: RunConfig,
+                    *, node_hook: Callable[[Any], None] | None = None, node: Any = None) -> dict[str, Any]:
+    """Agent ``agent_id`` (1-based id) until the plant stops the team. ``node``: its
+    :class:`~agents.node.AgentNode` if already built (else built here, as the simulator does)."""
+    return await AgentProcess(exp, agent_id, bus, keys, cfg, node_hook=node_hook, node=node).run()

@@ -1,0 +1,321 @@
+"""The monitor process: records every round (truth, the agents' estimates and
+diagnostics), the membership and the counters, writes the run directory and streams the
+dashboard (the protocol: :mod:`agents.net.protocol`)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+
+from estimation.errors import TransportError
+from transport.codec import MONITOR_ID, PLANT_ID, Message
+from transport.keys import Keys
+from transport.zenoh_bus import Bus
+
+from .protocol import ACK_EVERY, MONITOR_LAG, Rejects, Role, RunConfig, _msg, diagnostics_from_meta, maxrss_mb, who_name
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
+
+log = logging.getLogger("rse.net")
+
+
+@dataclass
+class _Round:
+    x: np.ndarray | None = None
+    est: np.ndarray | None = None
+    present: np.ndarray | None = None
+    diag: dict[int, tuple[dict[str, float], bool | None]] = field(default_factory=dict)
+
+
+@dataclass
+class MonitorResult:
+    summary: dict[str, Any]
+    out_dir: Path | None
+    estimates: np.ndarray | None = None
+    truth: np.ndarray | None = None
+
+
+class MonitorProcess(Role):
+    name = "monitor"
+
+    def __init__(self, exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig, *, out_dir: Path | None = None,
+                 progress: Callable[[str, Any], None] | None = None, dashboard: Any = None) -> None:
+        super().__init__(exp, bus, keys, cfg)
+        from agents.monitor import Monitor
+
+        self.mon = Monitor(exp)
+        self.dashboard = dashboard
+        self._last_flush = time.monotonic()
+        if dashboard is not None:
+            self._setup_dashboard(dashboard)
+        self.out_dir = out_dir
+        self.progress = progress or (lambda kind, data: None)
+        self.rounds: dict[int, _Round] = {}
+        self.next_k = 0
+        self.max_truth = -1
+        self.stop_round: int | None = None
+        self.stats: dict[str, Message] = {}
+        self.membership: list[dict[str, Any]] = []
+        self.index = {aid: i for i, aid in enumerate(exp.agent_ids)}
+        self.t0 = time.monotonic()
+        K = exp.n_rounds + 1
+        self.traj = np.full((K, exp.N, exp.n), np.nan) if cfg.save_estimates else None
+        self.truth = np.full((K, exp.n), np.nan) if cfg.save_estimates else None
+        self._last_progress = 0.0
+
+    def after_batch(self) -> bool:
+        # rounds are recorded by handle_data; the main loop only watches for the end
+        if self._waiting is not None:
+            return super().after_batch()
+        return self.stop_round is not None or self.next_k == 0 or ("plant", 0) not in self.alive
+
+    def _setup_dashboard(self, dash: Any) -> None:
+        """Stream to the Rerun dashboard as ``rse simulate`` does: per chunk of recorded
+        rounds the metrics, state plots, map frames and counters. The links delivered in a
+        round and the link counters are reconstructed from the done reports (who sent what
+        to whom, stamped when) with the channel model, as each receiver's node decides."""
+        from agents.simulate import make_channel
+
+        exp, mon = self.exp, self.mon
+        self._channel = make_channel(exp)
+        self._frames: dict[int, np.ndarray] = {}
+        self._counters = np.zeros((exp.N, 4))  # delivered, dropped, late, rejected (per receiver)
+        N = exp.N
+
+        def on_chunk(rows: Any, xs: np.ndarray, ests: np.ndarray) -> None:
+            frames = {int(k): self._frames.pop(int(k), None) for k in rows if dash.is_map_frame(int(k))}
+            for k, D in frames.items():
+                if D is None:
+                    frames[k] = np.zeros((N, N), dtype=bool)
+            try:
+                dash.log_chunk(rows, mon, x=xs, est=ests, delivered=frames, counters=self._counters.copy())
+            except Exception:  # the dashboard must not stop the monitor
+                log.exception("monitor: could not log to the dashboard")
+
+        mon.on_chunk = on_chunk
+
+    def _links_of(self, sender: int, stamp: int, to: np.ndarray, stamps: np.ndarray) -> None:
+        """Dashboard bookkeeping of one done report (see :meth:`_setup_dashboard`)."""
+        fate, index, dash = self._channel.fate, self.index, self.dashboard
+        s = index[sender]
+        for t, st in zip(to, stamps):
+            r = index.get(int(t))
+            if r is None:
+                continue
+            when = fate(sender, int(t), int(st))
+            c = self._counters[r]
+            if when is None:
+                c[1] += 1
+                continue
+            c[0] += 1
+            if when > int(st) + 1:
+                c[2] += 1
+            if when >= self.next_k and dash.is_map_frame(when) and when <= self.exp.n_rounds:
+                D = self._frames.get(when)
+                if D is None:
+                    D = self._frames[when] = np.zeros((self.exp.N, self.exp.N), dtype=bool)
+                D[r, s] = True
+
+    def on_alive(self, role: str, i: int, alive: bool) -> None:
+        event = {"t_wall": round(time.monotonic() - self.t0, 3), "round": self.next_k, "role": role, "id": i,
+                 "event": "join" if alive else "leave"}
+        self.membership.append(event)
+        label = role if role != "agent" else f"agent {i}"
+        log.info("monitor: %s %s (round %d)", label, "joined" if alive else "left", self.next_k)
+        self.progress("member", event)
+
+    def _rec(self, k: int) -> _Round:
+        r = self.rounds.get(k)
+        if r is None:
+            r = self.rounds[k] = _Round(est=np.full((self.exp.N, self.exp.n), np.nan),
+                                        present=np.zeros(self.exp.N, dtype=bool))
+        return r
+
+    def handle_data(self, key: str, payload: bytes) -> None:
+        K = self.exp.n_rounds
+        if key.endswith("/plant/truth"):
+            got = self.decode(key, payload, self.wire.truth)
+            if got is None:
+                return
+            k = got[1].stamp
+            if k > K or k < self.next_k:
+                self.rejects.add(PLANT_ID, "range")
+                return
+            self._rec(k).x = got[1].arrays["x"]
+            self.max_truth = max(self.max_truth, k)
+        elif "/ctl/done/" in key:
+            got = self.decode(key, payload, self.wire.done)
+            if got is None:
+                return
+            p, m = got
+            k = m.stamp
+            if p.sender not in self.index or k > K:
+                self.rejects.add(p.sender, "range")
+                return
+            if k < self.next_k:
+                return  # too late for the record
+            r = self._rec(k)
+            i = self.index[p.sender]
+            if not m.meta.get("nonfinite"):
+                r.est[i] = m.arrays["x"]
+            r.present[i] = True
+            if m.meta:
+                diag, flag = diagnostics_from_meta(m.meta)
+                if diag or flag is not None:
+                    r.diag[i] = (diag, flag)
+            if self.dashboard is not None:
+                self._links_of(p.sender, k, m.arrays["to"], m.arrays["stamps"])
+        elif "/ctl/stats/" in key:
+            got = self.decode(key, payload, self.wire.stats)
+            if got is not None:
+                self.stats[who_name(got[0].sender)] = got[1]
+        elif "/ctl/stop/" in key:
+            got = self.decode(key, payload, self.wire.ctl)
+            if got is not None and got[0].sender == PLANT_ID:
+                self.stop_round = got[1].stamp
+        else:
+            self.rejects.add(None, "key")
+        self._close_rounds(final=False)
+
+    def _complete(self, r: _Round) -> bool:
+        # not before the plant's token: until then this process does not know the team (a
+        # monitor that subscribes late gets the tokens present in one batch, which through
+        # a loaded router can come rounds after the first truth and done reports)
+        if r.x is None or ("plant", 0) not in self.alive:
+            return False
+        for (role, aid) in self.alive:
+            if role == "agent" and aid in self.index and not r.present[self.index[aid]]:
+                return False
+        return True
+
+    def _close_rounds(self, final: bool) -> None:
+        closed = False
+        while True:
+            k = self.next_k
+            if k > self.exp.n_rounds:
+                break
+            r = self.rounds.get(k)
+            complete = r is not None and self._complete(r)
+            if not complete and not final and self.max_truth < k + MONITOR_LAG:
+                break
+            if r is not None and r.x is not None:
+                self.mon.record(k, r.x, r.est, r.present)
+                for i, (diag, flag) in r.diag.items():
+                    self.mon.record_diagnostics(k, i, diag, flag)
+                if self.traj is not None:
+                    self.traj[k] = np.where(r.present[:, None], r.est, np.nan)
+                    self.truth[k] = r.x
+            self.rounds.pop(k, None)
+            self.next_k = k + 1
+            closed = True
+            if self.next_k % ACK_EVERY == 0:
+                self.bus.publish(self.keys.ctl("ack", MONITOR_ID), _msg("ctl", MONITOR_ID, self.next_k - 1, {}))
+            if final and self.stop_round is not None and self.next_k > self.stop_round:
+                break
+        if closed:
+            now = time.monotonic()
+            if self.dashboard is not None and now - self._last_flush > 0.5:
+                self._last_flush = now
+                self.mon.flush()  # keep the live view fresh
+            if now - self._last_progress > 0.1 or final:
+                self._last_progress = now
+                self.progress("round", (self.next_k - 1, self.mon.current_worst()))
+
+    async def run(self) -> MonitorResult:
+        keys, bus, cfg, exp = self.keys, self.bus, self.cfg, self.exp
+        bus.subscribe(keys.plant_truth(), self.queue)
+        bus.subscribe(keys.ctl_pattern("done"), self.queue)
+        bus.subscribe(keys.ctl_pattern("stats"), self.queue)
+        bus.subscribe(keys.ctl_pattern("stop"), self.queue)
+        bus.watch(keys.alive_pattern(), self.queue)
+        bus.announce(keys.alive("monitor", 0))
+        consumer = asyncio.ensure_future(self.consume())
+        try:
+            # the whole run, bounded only by the plant: it stops the team (or leaves)
+            while self.stop_round is None:
+                if self.next_k == 0 and ("plant", 0) not in self.alive and time.monotonic() - self.t0 > cfg.startup_timeout:
+                    raise TransportError(f"no plant found within {cfg.startup_timeout:g} s")
+                if self.next_k > 0 and ("plant", 0) not in self.alive:
+                    await asyncio.sleep(max(0.5, cfg.deadline))
+                    if self.stop_round is None and ("plant", 0) not in self.alive:
+                        raise TransportError("the plant left before the end of the run")
+                self.changed.clear()
+                try:
+                    await asyncio.wait_for(self.changed.wait(), 0.25)
+                except asyncio.TimeoutError:
+                    pass
+            K = self.stop_round
+            await self.wait_for(lambda: self.next_k > K or (K in self.rounds and self._complete(self.rounds[K])), cfg.deadline)
+            self._close_rounds(final=True)
+            agents_alive = lambda: {str(a) for (r, a) in self.alive if r == "agent"}  # noqa: E731
+            await self.wait_for(lambda: "plant" in self.stats and agents_alive() <= set(self.stats), cfg.linger)
+            return self._finish()
+        finally:
+            consumer.cancel()
+
+    def _finish(self) -> MonitorResult:
+        from agents.summary import evaluate, summarise
+
+        exp, mon = self.exp, self.mon
+        if self.dashboard is not None:  # the final rejected counts per receiver, for the last chunk
+            for who, m in self.stats.items():
+                if who.isdigit() and int(who) in self.index:
+                    self._counters[self.index[int(who)], 3] = float(np.sum(m.arrays["links"][:, 5]))
+        mon.flush()
+        if self.dashboard is not None:
+            self.dashboard.flush()
+        regular = np.array([i not in exp.byzantine for i in range(exp.N)])
+        links: dict[str, dict[str, int]] = {}
+        rejected: dict[str, dict[str, int]] = {}
+        processes: dict[str, Any] = {"monitor": {"maxrss_mb": maxrss_mb()}}
+        Rejects.merge(rejected, self.rejects.as_array())
+        perf: dict[str, Any] = {}
+        for who, m in sorted(self.stats.items()):
+            Rejects.merge(rejected, m.arrays["rejected"])
+            processes[who if who == "plant" else f"agent {who}"] = {k: v for k, v in m.meta.items() if k != "cmd"}
+            for row in m.arrays["links"]:
+                j, sent, delivered, dropped, late, rej = (int(v) for v in row)
+                links[f"{j}->{who}"] = {"sent": sent, "delivered": delivered, "dropped": dropped, "late": late,
+                                        "rejected": rej}
+            if who == "plant":
+                perf = {"elapsed_s": m.meta.get("elapsed"), "rounds": m.meta.get("rounds"),
+                        "deadline_misses": m.meta.get("missed")}
+        if perf.get("elapsed_s"):
+            perf["rounds_per_s"] = perf["rounds"] / perf["elapsed_s"]
+            perf["agent_rounds_per_s"] = perf["rounds_per_s"] * exp.N
+        # order links like the simulator: by receiver, then sender
+        order = {f"{j}->{aid}": (exp.agent_ids.index(aid), jj) for aid in exp.agent_ids
+                 for jj, j in enumerate([exp.agent_ids[x] for x in exp.in_neighbours(exp.agent_ids.index(aid))])}
+        links = dict(sorted(links.items(), key=lambda kv: order.get(kv[0], (1 << 30, 0))))
+        results = evaluate(exp, mon, regular)
+        summary = summarise(exp, mon, regular, links, rejected)
+        summary["expectations"] = [r.as_dict() for r in results]
+        summary["performance"] = perf
+        summary["driver"] = "run"
+        summary["mode"] = self.cfg.mode
+        summary["membership"] = self.membership
+        summary["processes"] = processes
+        if self.out_dir is not None:
+            from agents.rundir import write_json, write_metrics
+
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            write_metrics(self.out_dir, exp, mon, regular)
+            write_json(self.out_dir / "summary.json", summary)
+            if self.traj is not None:
+                np.save(self.out_dir / "estimates.npy", self.traj[: mon.last_round + 1])
+                np.save(self.out_dir / "truth.npy", self.truth[: mon.last_round + 1])
+        return MonitorResult(summary, self.out_dir, self.traj, self.truth)
+
+
+async def run_monitor(exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig, *, out_dir: Path | None = None,
+                      progress: Callable[[str, Any], None] | None = None, dashboard: Any = None) -> MonitorResult:
+    """The monitor until the plant stops the team; writes metrics and summary to ``out_dir``;
+    streams to ``dashboard`` (an :class:`agents.dashboard.Dashboard`) when given."""
+    return await MonitorProcess(exp, bus, keys, cfg, out_dir=out_dir, progress=progress, dashboard=dashboard).run()

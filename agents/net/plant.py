@@ -1,0 +1,174 @@
+"""The plant process: publishes the truth and each agent's measurement per round and
+paces the team (the protocol: :mod:`agents.net.protocol`)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections import Counter
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from estimation.errors import TransportError
+from transport.codec import MONITOR_ID, PLANT_ID
+from transport.keys import Keys
+from transport.zenoh_bus import Bus
+
+from .protocol import MAX_AHEAD, Role, RunConfig, _msg
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
+
+log = logging.getLogger("rse.net")
+
+
+class PlantProcess(Role):
+    name = "plant"
+
+    def __init__(self, exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig) -> None:
+        super().__init__(exp, bus, keys, cfg)
+        from agents.plant import PlantRole
+
+        self.plant = PlantRole(exp)
+        self.ready: set[int] = set()  # agents that asked to join
+        self.members: set[int] = set()
+        self.done: dict[int, dict[int, list[tuple[int, int]]]] = {}  # round -> agent -> (receiver, stamp)
+        self.monitor_ack = -1
+        self.missed: Counter[int] = Counter()
+        out_ids = {aid: {exp.agent_ids[j] for j in exp.out_neighbours(i)} for i, aid in enumerate(exp.agent_ids)}
+        self.out_ids = out_ids
+
+    def on_alive(self, role: str, i: int, alive: bool) -> None:
+        if role == "agent" and not alive:
+            self.ready.discard(i)
+            if i in self.members:
+                self.members.discard(i)
+                log.info("plant: agent %d left", i)
+
+    def handle_data(self, key: str, payload: bytes) -> None:
+        if "/ctl/done/" in key:
+            got = self.decode(key, payload, self.wire.done)
+            if got is None:
+                return
+            p, m = got
+            to, stamps = m.arrays["to"], m.arrays["stamps"]
+            allowed = self.out_ids.get(p.sender)
+            tl, sl = to.tolist(), stamps.tolist()
+            if (allowed is None or len(tl) > len(allowed) or len(sl) != len(tl)
+                    or not all(t.is_integer() and int(t) in allowed for t in tl)
+                    or not all(s.is_integer() and 0 <= s < 2**53 for s in sl)):
+                self.rejects.add(p.sender, "range")
+                return
+            rnd = self.done.get(m.stamp)
+            if rnd is not None:
+                rnd[p.sender] = [(int(t), int(s)) for t, s in zip(tl, sl)]
+        elif "/ctl/ready/" in key:
+            got = self.decode(key, payload, self.wire.ctl)
+            if got is not None and got[0].sender in self.ids:
+                self.ready.add(got[0].sender)
+        elif "/ctl/ack/" in key:
+            got = self.decode(key, payload, self.wire.ctl)
+            if got is not None and got[0].sender == MONITOR_ID:
+                self.monitor_ack = max(self.monitor_ack, got[1].stamp)
+        else:
+            self.rejects.add(None, "key")
+
+    def _wait_lists(self, prev: dict[int, list[tuple[int, int]]]) -> dict[int, np.ndarray]:
+        """Per receiver, the (sender, stamp) pairs of the messages sent to it last round."""
+        lists: dict[int, list[tuple[int, int]]] = {aid: [] for aid in self.exp.agent_ids}
+        for sender, to in prev.items():
+            for r, stamp in to:
+                if r in lists:
+                    lists[r].append((sender, stamp))
+        return {r: np.array(sorted(v), dtype=float).reshape(-1, 2) for r, v in lists.items()}
+
+    async def run(self) -> dict[str, Any]:
+        exp, keys, bus, cfg = self.exp, self.keys, self.bus, self.cfg
+        bus.subscribe(keys.ctl_pattern("done"), self.queue)
+        bus.subscribe(keys.ctl_pattern("ready"), self.queue)
+        bus.subscribe(keys.ctl_pattern("ack"), self.queue)
+        bus.watch(keys.alive_pattern(), self.queue)
+        consumer = asyncio.ensure_future(self.consume())
+        try:
+            bus.announce(keys.alive("plant", 0))
+            everyone = set(exp.agent_ids)
+            ok = await self.wait_for(lambda: ("monitor", 0) in self.alive and self.ready >= everyone, cfg.startup_timeout)
+            if not ok:
+                missing = sorted(everyone - self.ready)
+                what = ([f"agent(s) {', '.join(map(str, missing))}"] if missing else []) + \
+                       (["the monitor"] if ("monitor", 0) not in self.alive else [])
+                raise TransportError(f"{' and '.join(what)} did not join within {cfg.startup_timeout:g} s")
+            log.debug("plant: the team is complete")
+            return await self._rounds()
+        finally:
+            consumer.cancel()
+
+    async def _rounds(self) -> dict[str, Any]:
+        exp, keys, bus, cfg, plant = self.exp, self.keys, self.bus, self.cfg, self.plant
+        K = exp.n_rounds
+        ids = exp.agent_ids
+        static = getattr(exp, "static", True)
+        lockstep = cfg.mode == "lockstep"
+        period = 1.0 / cfg.rate if cfg.rate else None
+        loc_keys = {aid: keys.plant_loc(aid) for aid in ids}
+        truth_key = keys.plant_truth()
+        prev: dict[int, list[tuple[int, int]]] = {}
+        empty = np.zeros(0)
+        nowait = np.zeros((0, 2))
+        t0 = time.monotonic()
+        for k in range(K + 1):
+            joined = (self.ready & {a for (r, a) in self.alive if r == "agent"}) - self.members
+            if joined:
+                self.members |= joined
+                log.info("plant: agent(s) %s joined at round %d", ", ".join(map(str, sorted(joined))), k)
+            self.done[k] = {}
+            y = plant.measure(k)
+            bus.publish(truth_key, _msg("truth", PLANT_ID, k, {"x": plant.x}))
+            waits = self._wait_lists(prev) if lockstep else {}
+            # realtime: a measurement an agent cannot take now is dropped for it alone
+            # (an unreachable agent must not hold up the others' measurements)
+            for i, aid in enumerate(ids):
+                rows = exp.agent_rows[i] if static else exp.rows_at(i, k)
+                meas = empty if rows is None else y[rows]
+                member = aid in self.members
+                bus.publish(loc_keys[aid], _msg("meas", PLANT_ID, k, {"y": meas, "wait": waits.get(aid, nowait) if member else nowait},
+                                                meta={"member": member, "nomeas": rows is None}), droppable=not lockstep)
+            if lockstep:
+                expected = set(self.members)
+                rnd = self.done[k]
+                finished = await self.wait_for(lambda: all(a in rnd or a not in self.members for a in expected),
+                                               cfg.deadline)
+                if not finished:
+                    late = sorted(a for a in expected if a not in rnd and a in self.members)
+                    for a in late:
+                        self.missed[a] += 1
+                        if self.missed[a] in (1, 10, 100, 1000):
+                            log.warning("plant: agent %d missed the %g s deadline in round %d (%d time(s))",
+                                        a, cfg.deadline, k, self.missed[a])
+                if k - self.monitor_ack > MAX_AHEAD:
+                    if not await self.wait_for(lambda: k - self.monitor_ack <= MAX_AHEAD // 2, cfg.startup_timeout):
+                        raise TransportError(f"the monitor stopped acknowledging rounds (last {self.monitor_ack})")
+            if period is not None:
+                delay = t0 + (k + 1) * period - time.monotonic()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+            prev = self.done[k]
+            self.done.pop(k - 1, None)
+            if k < K:
+                plant.advance(k)
+        elapsed = time.monotonic() - t0
+        # the end: final wait lists (messages stamped K), then stop
+        waits = self._wait_lists(self.done.get(K, {})) if lockstep else {}
+        self.send_stats(PLANT_ID, elapsed=elapsed, rounds=K + 1, missed=int(sum(self.missed.values())))
+        for aid in ids:
+            bus.publish(loc_keys[aid], _msg("ctl", PLANT_ID, K, {"wait": waits.get(aid, nowait)}, meta={"cmd": "stop"}))
+        bus.publish(keys.ctl("stop", PLANT_ID), _msg("ctl", PLANT_ID, K, {}, meta={"cmd": "stop"}))
+        await asyncio.sleep(0.05)  # let the last messages leave before the session closes
+        return {"elapsed": elapsed, "rounds": K + 1}
+
+
+async def run_plant(exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig) -> dict[str, Any]:
+    """The plant process (see the module docstring); returns elapsed time and rounds."""
+    return await PlantProcess(exp, bus, keys, cfg).run()

@@ -1,0 +1,316 @@
+"""The round protocol of the networked runtime and what its three roles share.
+
+The roles live in one module each (:mod:`agents.net.plant`, :mod:`agents.net.agent`,
+:mod:`agents.net.monitor`); this module holds the protocol's configuration, message
+schemas, rejection counters and the :class:`Role` base class. Each role reuses the
+in-process simulator's pieces (:class:`~agents.plant.PlantRole`,
+:class:`~agents.node.AgentNode`, :class:`~agents.monitor.Monitor`), so both drivers share
+the round logic and the channel model (drops and delays are decided receiver-side by
+``AgentNode.receive`` from ``(seed, sender, receiver, stamp)``).
+
+The round protocol (keys from :class:`transport.keys.Keys`)::
+
+    plant   -> rse/{run}/plant/truth        "truth" x[k]                       (monitor)
+    plant   -> rse/{run}/plant/loc/{i}      "meas"  y_i[k], wait list, member  (agent i)
+    agent i -> rse/{run}/agent/{i}/est      "est"   payload stamped k (broadcast)
+            or rse/{run}/agent/{i}/est/{j}  "est"   addressed payloads (Byzantine)
+    agent i -> rse/{run}/ctl/done/{i}       "done"  own estimate x_i[k], receivers  (plant, monitor)
+    agent i -> rse/{run}/ctl/ready/{i}      joining the team                    (plant)
+    monitor -> rse/{run}/ctl/ack/monitor    rounds recorded (flow control)      (plant)
+    plant   -> rse/{run}/plant/loc/{i}      "ctl" cmd=stop, wait list           (agent i)
+    plant   -> rse/{run}/ctl/stop/plant     the last round                      (monitor)
+    every   -> rse/{run}/ctl/stats/{who}    link and rejection counters, RSS    (monitor)
+    every   -> rse/{run}/alive/{role}/{i}   liveliness token
+
+**Lockstep**: the plant publishes round ``k`` once every member agent reported round
+``k - 1`` done (or the deadline passed; a member whose token went away is not waited
+for). The meas message to agent ``i`` lists the in-neighbours whose round ``k - 1``
+messages were sent to ``i`` (from their done reports); the agent runs round ``k`` when
+all of them have physically arrived (or the deadline passed), so every message reaches
+``AgentNode.receive`` before the round in which the channel model makes it visible, and
+the estimates equal ``rse simulate``'s. **Realtime**: the plant ticks at ``rate`` Hz on
+the wall clock, agents run a round as soon as its measurement arrives, with whatever
+has arrived (late messages are placed by their stamps).
+
+**Joining**: an agent subscribes, declares its token, waits until it sees the plant's and
+the monitor's tokens (and its neighbours', or the team is already running), then sends
+``ready`` until a meas message says it is a member; it runs rounds from there on. A
+killed agent's token disappears and the team goes on; ``rse agent --id I`` rejoins.
+
+Every received payload is decoded strictly (:func:`transport.codec.decode` with the key's
+sender); a bad one is dropped and counted per sender (``summary.json``: ``rejected``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import resource
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+
+from estimation.errors import MessageError
+from transport.codec import MIN_ID, MONITOR_ID, PLANT_ID, Message, Schema, decode, encode
+from transport.keys import Keys, ParsedKey
+from transport.zenoh_bus import Bus
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
+
+
+log = logging.getLogger("rse.net")
+
+MODES = ("lockstep", "realtime")
+QUEUE_SIZE = 1 << 16
+MONITOR_LAG = 128  # the monitor closes round k once truth k + LAG arrived
+ACK_EVERY = 32
+MAX_AHEAD = 512  # lockstep: the plant waits when the monitor is this many rounds behind
+UNKNOWN = MIN_ID  # sender code of a message whose key names no sender
+REASONS = ("size", "decode", "type", "keys", "version", "sender", "shape", "nonfinite", "key", "range", "neighbour",
+           "invalid")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """How the team runs (picklable: handed to spawned processes).
+
+    mode : "lockstep" or "realtime"
+    rate : Hz; required for realtime (the plant's wall-clock tick); in lockstep an
+        optional upper bound on the round rate (pacing)
+    deadline : seconds a lockstep round waits for a missing agent or message
+    startup_timeout : seconds to wait for the team to assemble
+    save_estimates : the monitor also writes ``estimates.npy`` and ``truth.npy``
+    linger : seconds the monitor waits for the final counters after the last round
+    warmup : scenario seconds an agent that joins a running team (round > 0) listens
+        before it publishes (its estimate converges first instead of disturbing its
+        neighbours); the monitor records it from its first round
+    """
+
+    mode: str = "lockstep"
+    rate: float | None = None
+    deadline: float = 1.0
+    startup_timeout: float = 60.0
+    save_estimates: bool = False
+    linger: float = 2.0
+    warmup: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
+        if self.mode == "realtime" and not self.rate:
+            raise ValueError("realtime mode needs --rate HZ")
+        if self.rate is not None and not (self.rate > 0 and math.isfinite(self.rate)):
+            raise ValueError(f"rate must be a positive number of Hz, got {self.rate!r}")
+        if not self.deadline > 0:
+            raise ValueError(f"deadline must be > 0 s, got {self.deadline!r}")
+
+
+def maxrss_mb() -> float:
+    """Peak resident set size of this process (MB): ``VmHWM`` of ``/proc/self/status``
+    (``ru_maxrss`` is inherited across ``exec`` on Linux, so a spawned child would
+    report its launcher's peak), else psutil's current RSS."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    try:
+        import psutil
+
+        return psutil.Process().memory_info().rss / 2**20
+    except Exception:  # pragma: no cover
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def who_name(sender: int | None) -> str:
+    if sender is None or sender == UNKNOWN:
+        return "unknown"
+    return {PLANT_ID: "plant", MONITOR_ID: "monitor"}.get(sender, str(sender))
+
+
+class Wire:
+    """The schemas of one scenario's messages."""
+
+    def __init__(self, exp: Experiment) -> None:
+        n, N = exp.n, exp.N
+        self.n, self.N = n, N
+        self.ny = int(sum(len(r) for r in exp.bank_rows))
+        self.loc = Schema({"meas": {"y": (None,), "wait": (None, 2)}, "ctl": {"wait": (None, 2)}})
+        self.truth = Schema({"truth": {"x": (n,)}})
+        self.est = Schema({"est": {"x": (None,)}})
+        self.done = Schema({"done": {"x": (n,), "to": (None,), "stamps": (None,)}})
+        self.ctl = Schema({"ctl": {}})
+        self.stats = Schema({"ctl": {"links": (None, 6), "rejected": (None, 3)}})
+
+
+DIAG_PREFIX = "d_"
+MAX_DIAGNOSTICS = 12  # the codec carries at most 16 metadata entries
+
+
+def diagnostics_meta(estimator: Any) -> dict[str, Any]:
+    """An estimator's diagnostics and attack flag as done-report metadata
+    (``flag``; ``d:NAME`` per finite value; a non-finite value is left out and reads as
+    missing, NaN, at the monitor)."""
+    from agents.monitor import read_diagnostics
+
+    diag, flag = read_diagnostics(estimator)
+    meta: dict[str, Any] = {}
+    if flag is not None:
+        meta["flag"] = bool(flag)
+    for name, v in list((diag or {}).items())[:MAX_DIAGNOSTICS]:
+        key = DIAG_PREFIX + name
+        if np.isfinite(v) and len(key) <= 32 and key.replace("_", "a").isalnum() and key.isascii():
+            meta[key] = float(v)  # names the codec cannot carry are left out
+    return meta
+
+
+def diagnostics_from_meta(meta: Any) -> tuple[dict[str, float], bool | None]:
+    diag = {k[len(DIAG_PREFIX):]: float(v) for k, v in meta.items()
+            if isinstance(k, str) and k.startswith(DIAG_PREFIX) and isinstance(v, (int, float)) and not isinstance(v, bool)}
+    flag = meta.get("flag")
+    return diag, (bool(flag) if isinstance(flag, bool) else None)
+
+
+class Rejects:
+    """Bad messages per claimed sender and reason."""
+
+    def __init__(self) -> None:
+        self.counts: Counter[tuple[int, str]] = Counter()
+
+    def add(self, sender: int | None, reason: str) -> None:
+        self.counts[(UNKNOWN if sender is None else sender, reason if reason in REASONS else "invalid")] += 1
+
+    def as_array(self) -> np.ndarray:
+        rows = [(s, REASONS.index(r), c) for (s, r), c in sorted(self.counts.items())]
+        return np.array(rows, dtype=float).reshape(-1, 3)
+
+    @staticmethod
+    def merge(into: dict[str, dict[str, int]], rows: np.ndarray) -> None:
+        for s, r, c in np.asarray(rows).reshape(-1, 3):
+            s, r, c = int(s), int(r), int(c)
+            if not (0 <= r < len(REASONS)) or c < 0:
+                continue
+            rec = into.setdefault(who_name(s), {"total": 0})
+            rec["total"] += c
+            rec[REASONS[r]] = rec.get(REASONS[r], 0) + c
+
+
+def _msg(kind: str, sender: int, stamp: int, arrays: dict, **kw: Any) -> bytes:
+    return encode(Message(kind=kind, sender=sender, stamp=stamp, arrays=arrays, **kw))
+
+
+class Role:
+    """What the three roles share: one queue, strict decoding, liveliness bookkeeping."""
+
+    name = "role"
+
+    def __init__(self, exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig) -> None:
+        self.exp, self.bus, self.keys, self.cfg = exp, bus, keys, cfg
+        self.wire = Wire(exp)
+        self.queue: asyncio.Queue = asyncio.Queue(maxsize=QUEUE_SIZE)
+        self.rejects = Rejects()
+        self.alive: set[tuple[str, int]] = set()
+        self.changed = asyncio.Event()
+        self.ids = set(exp.agent_ids)
+        self._waiting: Callable[[], bool] | None = None  # the predicate wait_for waits on
+
+    def decode(self, key: str, payload: bytes, schema: Schema) -> tuple[ParsedKey, Message] | None:
+        try:
+            parsed = self.keys.parse(key)
+        except MessageError:
+            self.rejects.add(None, "key")
+            return None
+        try:
+            msg = decode(payload, schema=schema, expected_sender=parsed.sender, expected_receiver=parsed.receiver)
+        except MessageError as exc:
+            self.rejects.add(parsed.sender, exc.reason)
+            self.on_reject(parsed.sender)
+            log.debug("%s: dropped a message on %s: %s", self.name, key, exc)
+            return None
+        return parsed, msg
+
+    def on_reject(self, sender: int | None) -> None:
+        pass
+
+    def on_alive(self, role: str, i: int, alive: bool) -> None:
+        pass
+
+    def handle_token(self, key: str, alive: bool) -> None:
+        try:
+            parsed = self.keys.parse(key)
+        except MessageError:
+            return
+        who = (parsed.name or "", parsed.ids[0])
+        if alive and who not in self.alive:
+            self.alive.add(who)
+            self.on_alive(who[0], who[1], True)
+        elif not alive and who in self.alive:
+            self.alive.discard(who)
+            self.on_alive(who[0], who[1], False)
+
+    def handle_data(self, key: str, payload: bytes) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def handle(self, item: Any) -> None:
+        try:
+            key, payload = item
+            if type(payload) is bool:
+                self.handle_token(key, payload)
+            else:
+                self.handle_data(key, payload)
+        except Exception:  # a bug in handling one item must not stop the process
+            log.exception("%s: error while handling a message", self.name)
+
+    async def consume(self) -> None:
+        q = self.queue
+        while True:
+            self.handle(await q.get())
+            while not q.empty():
+                self.handle(q.get_nowait())
+            if self.after_batch():
+                self.changed.set()
+
+    def after_batch(self) -> bool:
+        """Called by the consumer after each batch of messages; returns whether the role's
+        main loop must wake up (a role may do its work here and spare that wake-up). While
+        :meth:`wait_for` waits, only when its predicate holds."""
+        pred = self._waiting
+        if pred is None:
+            return True
+        try:
+            return bool(pred())
+        except Exception:  # let the waiter see it
+            return True
+
+    async def wait_for(self, pred: Callable[[], bool], timeout: float | None) -> bool:
+        """Wait until ``pred()`` holds (re-checked after each batch of messages)."""
+        end = None if timeout is None else time.monotonic() + timeout
+        self._waiting = pred
+        try:
+            while not pred():
+                self.changed.clear()
+                if pred():
+                    return True
+                remaining = None if end is None else end - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return False
+                try:
+                    await asyncio.wait_for(self.changed.wait(), remaining)
+                except asyncio.TimeoutError:
+                    return pred()
+            return True
+        finally:
+            self._waiting = None
+
+    def send_stats(self, sender: int, links: np.ndarray | None = None, **meta: Any) -> None:
+        links = np.zeros((0, 6)) if links is None else links
+        meta = {"cmd": "stats", "maxrss_mb": maxrss_mb(), "bridge_dropped": int(self.bus.stats.dropped_full), **meta}
+        self.bus.publish(self.keys.ctl("stats", sender),
+                         _msg("ctl", sender, 0, {"links": links, "rejected": self.rejects.as_array()}, meta=meta))
