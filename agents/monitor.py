@@ -24,11 +24,12 @@ nothing.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 
-from scenarios.build import Experiment
+if TYPE_CHECKING:  # an agent process reads diagnostics without the scenario layer
+    from scenarios.build import Experiment
 
 METRICS = ("error_2", "error_inf", "relative_error_2")
 

@@ -31,7 +31,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse.csgraph import connected_components
 
 from .errors import DesignError
 
@@ -197,6 +196,8 @@ def diffusion(
     x0_noise : float >= 0, amplitude of uniform noise added to the paper's initial states
     max_draws : int, redraws per cell before giving up (DesignError)
     """
+    from scipy.sparse.csgraph import connected_components
+
     _check(K, rng, cell_size)
     if not (0 < eps) or not (radius > 0) or locations < 1 or x0_noise < 0:
         raise DesignError(f"diffusion: need eps > 0, radius > 0, locations >= 1, x0_noise >= 0; got {eps}, {radius}, {locations}, {x0_noise}")

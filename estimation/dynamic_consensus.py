@@ -66,7 +66,6 @@ from dataclasses import dataclass
 from typing import Mapping
 
 import numpy as np
-from scipy.optimize import minimize
 
 from .errors import DesignError
 
@@ -178,6 +177,8 @@ def design_consensus_gains(Adj, *, max_spectral_radius: float = 1.0 - 1e-9) -> C
         Naming the graph property: not undirected, not connected (no stable gains exist),
         or ``lambda_2 / lambda_max`` too small for the demanded rate.
     """
+    from scipy.optimize import minimize
+
     Adj = np.asarray(Adj, dtype=float)
     if Adj.ndim != 2 or Adj.shape[0] != Adj.shape[1] or Adj.shape[0] < 2:
         raise DesignError(f"adjacency must be a square (p, p) matrix with p >= 2, got shape {Adj.shape}")

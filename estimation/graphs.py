@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from typing import Iterable, Sequence
 
-import networkx as nx
 import numpy as np
 
 from .errors import DesignError
@@ -69,12 +68,16 @@ def algebraic_connectivity(Adj: np.ndarray) -> float:
 
 def components(Adj: np.ndarray) -> list[list[int]]:
     """Weakly connected components (0-based agent lists), largest first."""
+    import networkx as nx
+
     G = nx.from_numpy_array(np.asarray(Adj), create_using=nx.DiGraph)
     comps = [sorted(c) for c in nx.weakly_connected_components(G)]
     return sorted(comps, key=len, reverse=True)
 
 
 def is_strongly_connected(Adj: np.ndarray) -> bool:
+    import networkx as nx
+
     G = nx.from_numpy_array(np.asarray(Adj).T, create_using=nx.DiGraph)  # edge j->i
     return nx.is_strongly_connected(G)
 

@@ -41,7 +41,6 @@ from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy.linalg import sqrtm
 
 from .base import Inbox
 from .errors import DesignError
@@ -120,6 +119,8 @@ def lyapunov_certificate(A: np.ndarray, basis: CommonBasis) -> np.ndarray | None
     ``[[a, b], [-b, a]]``, so ``P_bar = I`` (``P = W^T W``) certifies Lyapunov stability.
     Otherwise, for Hurwitz ``A``, ``P`` solves ``A^T P + P A = -I``.
     """
+    from scipy.linalg import sqrtm
+
     lam = np.linalg.eigvals(A)
     scale = max(1.0, float(np.max(np.abs(lam))))
     if np.any(lam.real > 1e-9 * scale):

@@ -34,7 +34,6 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.sparse.csgraph import connected_components
 
 from .errors import DesignError
 
@@ -108,6 +107,8 @@ def decoupled_blocks(A: np.ndarray) -> tuple[np.ndarray, ...]:
 
     Returns the components as sorted state-index arrays, ordered by smallest index.
     """
+    from scipy.sparse.csgraph import connected_components
+
     A = np.asarray(A)
     pattern = (A != 0) | (A.T != 0)
     ncomp, labels = connected_components(pattern.astype(np.int8), directed=False)

@@ -24,8 +24,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.optimize import brentq
-from scipy.special import comb
 
 from .errors import DesignError
 
@@ -49,6 +47,8 @@ def effective_erasure_probability(p: float | np.ndarray, *, m: int, f: int) -> f
     f : int >= 0
         Attack budget (f-local adversaries).
     """
+    from scipy.special import comb
+
     m, f = _check(m, f)
     pa = np.asarray(p, dtype=float)
     if np.any((pa < 0) | (pa > 1)) or not np.all(np.isfinite(pa)):
@@ -81,6 +81,8 @@ def max_erasure_probability(*, rho: float, m: int, f: int, xtol: float = 1e-14) 
     stable plants, Section 8.2) and 0.0 when nothing is certified (``pbar = 1``, i.e.
     ``m <= 2`` with ``rho > 1``).
     """
+    from scipy.optimize import brentq
+
     m, f = _check(m, f)
     if not (rho >= 0 and math.isfinite(rho)):
         raise DesignError(f"spectral radius rho must be finite and >= 0, got {rho!r}")

@@ -33,7 +33,6 @@ from itertools import combinations
 from typing import Iterable, Sequence
 
 import numpy as np
-from scipy.sparse import csr_matrix
 
 from .errors import DesignError
 
@@ -62,6 +61,8 @@ def peel(Adj: np.ndarray, sources: Iterable[int], *, r: int) -> tuple[list[list[
     ``levels[0]`` are the sources; ``levels[q]`` the agents first having ``r`` in-neighbours
     among ``levels[0..q-1]``. ``unreached`` is empty iff strongly r-robust w.r.t. ``sources``.
     """
+    from scipy.sparse import csr_matrix
+
     A = _adj(Adj)
     if r < 1:
         raise DesignError(f"robustness level r must be >= 1, got {r}")

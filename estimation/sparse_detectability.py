@@ -43,7 +43,6 @@ from itertools import combinations
 from math import comb
 
 import numpy as np
-from scipy.fft import dct
 
 from .errors import DesignError
 
@@ -238,6 +237,8 @@ def design_compression(
     DesignError
         If ``(A, C)`` is not ``2s``-sparse detectable (then no ``D`` exists, Corollary 1).
     """
+    from scipy.fft import dct
+
     A, C = _check_AC(A, C)
     p = C.shape[0]
     if not isinstance(s, (int, np.integer)) or s < 0:

@@ -7,7 +7,6 @@ A subspace of R^n is represented by an ``(n, d)`` matrix with orthonormal column
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import null_space, orth
 
 #: Relative tolerance used to decide ranks and memberships.
 RTOL = 1e-9
@@ -15,6 +14,8 @@ RTOL = 1e-9
 
 def basis(M: np.ndarray, *, rtol: float = RTOL) -> np.ndarray:
     """Orthonormal basis ``(n, r)`` of the column space of ``M`` (``(n, m)``)."""
+    from scipy.linalg import orth
+
     M = np.asarray(M, dtype=float)
     if M.size == 0 or M.shape[1] == 0:
         return np.zeros((M.shape[0], 0))
@@ -23,6 +24,8 @@ def basis(M: np.ndarray, *, rtol: float = RTOL) -> np.ndarray:
 
 def kernel(M: np.ndarray, *, rtol: float = RTOL) -> np.ndarray:
     """Orthonormal basis ``(m, r)`` of the null space of ``M`` (``(p, m)``)."""
+    from scipy.linalg import null_space
+
     M = np.asarray(M, dtype=float)
     if M.shape[0] == 0:
         return np.eye(M.shape[1])

@@ -12,9 +12,12 @@ Two deployments, one factory::
         ...
 
 Multicast scouting is off, so two teams on one machine never find each other; gossip
-scouting stays on, so a peer that connects to one member of its team learns the others'
-(loopback) locators and the peers form a mesh. A peer's ``connect`` endpoints need not be
-up yet: Zenoh retries them in the background. A client whose router is unreachable fails
+scouting stays on by default, so a peer that connects to one member of its team learns the
+others' (loopback) locators and the peers form a mesh. With ``gossip=False`` a peer is
+linked to exactly the peers it connects to (and those that connect to it): ``rse run``
+links each agent to the plant, the monitor and its graph neighbours only, not to the whole
+team. A peer's ``connect`` endpoints need not be up yet: Zenoh retries them in the
+background (every ``retry_ms`` at first, backing off to 1 s, with ``retry_ms`` given). A client whose router is unreachable fails
 at once with :class:`~estimation.errors.TransportError`.
 
 A session left open keeps Zenoh's non-daemon callback threads alive and hangs the
@@ -116,6 +119,12 @@ class SessionOptions:
     tls : transport.secure.TlsFiles, optional
         This process's TLS identity (CA, certificate, key): mutual TLS on every link;
         ``tcp/`` endpoints become ``tls/``, other protocols are refused.
+    gossip : bool
+        Gossip scouting (on: peers learn each other's locators through the ones they
+        connect to and form a full mesh; off: only the links configured).
+    retry_ms : int, optional
+        First retry period of a ``connect`` endpoint that is not up yet (Zenoh's default
+        when None: 1 s, backing off to 4 s); the period then grows by half up to 1 s.
     """
 
     mode: str = "peer"
@@ -123,6 +132,8 @@ class SessionOptions:
     connect: tuple[str, ...] = field(default_factory=tuple)
     multicast_scouting: bool = False
     tls: Any = None
+    gossip: bool = True
+    retry_ms: int | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -174,6 +185,8 @@ class SessionOptions:
             connect=self.connect,
             multicast_scouting=self.multicast_scouting,
             tls=self.tls,
+            gossip=self.gossip,
+            retry_ms=self.retry_ms,
         )
 
 
@@ -196,11 +209,14 @@ def make_config(
     connect: Sequence[str] = (),
     multicast_scouting: bool = False,
     tls: Any = None,
+    gossip: bool = True,
+    retry_ms: int | None = None,
 ) -> zenoh.Config:
     """Build a ``zenoh.Config`` with ``zenoh.Config()`` + ``insert_json5``.
 
     Sets ``mode``, ``listen/endpoints``, ``connect/endpoints`` and
-    ``scouting/multicast/enabled`` (the keys of Zenoh's ``DEFAULT_CONFIG.json5``), and
+    ``scouting/multicast/enabled`` (the keys of Zenoh's ``DEFAULT_CONFIG.json5``),
+    ``scouting/gossip/enabled`` when ``gossip`` is off, ``connect/retry`` with ``retry_ms``, and
     with ``tls`` (a :class:`transport.secure.TlsFiles`) the ``transport/link/tls`` keys of
     mutual TLS (:func:`transport.secure.tls_settings`); everything else keeps Zenoh's defaults. Values are written with ``json.dumps`` (JSON
     is JSON5), so no endpoint string can inject configuration.
@@ -215,6 +231,11 @@ def make_config(
         conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
         conf.insert_json5("listen/endpoints", json.dumps(listen))
         conf.insert_json5("connect/endpoints", json.dumps(connect))
+        if not gossip:
+            conf.insert_json5("scouting/gossip/enabled", "false")
+        if retry_ms is not None:
+            conf.insert_json5("connect/retry", json.dumps({"period_init_ms": int(retry_ms), "period_max_ms": 1000,
+                                                           "period_increase_factor": 1.5}))
         if tls is not None:
             from transport.secure import tls_settings
 

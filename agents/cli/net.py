@@ -196,7 +196,8 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
     from transport.keys import validate_run_id
     from transport.zenoh_session import SessionOptions, normalize_endpoint, tcp_endpoint
 
-    from ..net.launcher import ChildSpec, load_team, session_for
+    from ..net.child import ChildSpec
+    from ..net.launcher import load_team, session_for
 
     ctx = click.get_current_context()
     data: dict[str, Any] = load_team(team) if team is not None else {}
@@ -273,7 +274,7 @@ def _client_options(eps: tuple[str, ...], tls: Any) -> Any:
 
 
 def _run_single(spec: Any) -> None:
-    from ..net.launcher import run_role
+    from ..net.child import run_role
 
     code = run_role(spec)
     if code == EXIT_INTERRUPTED:
@@ -301,17 +302,20 @@ def agent(agent_id: int, **kw: Any) -> None:
     team = kw.get("team")
     cached = None
     if team is not None and not kw.get("overrides") and kw.get("seed") is None and kw.get("scenario") is None:
-        # the launcher's built experiment and this agent's fresh node: no design, fast rejoin
-        d = (team if team.is_dir() else team.parent) / "team"
-        if (d / "experiment.pkl").is_file() and (d / f"agent-{agent_id}.pkl").is_file():
-            cached = ((d / "experiment.pkl").read_bytes(), (d / f"agent-{agent_id}.pkl").read_bytes())
+        # this agent's slice of the launcher's built experiment: no scenario, no design, fast rejoin
+        path = (team if team.is_dir() else team.parent) / "team" / f"agent-{agent_id}.pkl"
+        if path.is_file():
+            cached = path.read_bytes()
     spec = _role_spec("agent", f"agent {agent_id}", agent_id=agent_id, _validate=cached is None, **kw)
     if cached is not None:
-        spec.experiment, spec.node = cached
+        spec.node = cached
     else:
+        from ..net.slices import agent_slice, dumps_slice
+
         exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
         if agent_id not in exp.agent_ids:
             raise ScenarioError(f"--id {agent_id}: no such agent; agents are {', '.join(map(str, exp.agent_ids))}")
+        spec.node = dumps_slice(agent_slice(exp, agent_id))  # built here once
     _run_single(spec)
 
 

@@ -23,30 +23,26 @@ from .view import NetworkView, reads_view
 if TYPE_CHECKING:
     from scenarios.build import Experiment
 
+    from .slices import AgentSlice
+
 log = logging.getLogger("rse.net")
 
 
 class AgentProcess(Role):
     name = "agent"
 
-    def __init__(self, exp: Experiment, agent_id: int, bus: Bus, keys: Keys, cfg: RunConfig,
-                 *, node_hook: Callable[[Any], None] | None = None, node: Any = None) -> None:
-        super().__init__(exp, bus, keys, cfg)
-        if agent_id not in exp.agent_ids:
-            raise RSEError(f"no agent {agent_id} in this scenario; agents are {', '.join(map(str, exp.agent_ids))}")
-        self.id = agent_id
-        self.index = i = exp.agent_ids.index(agent_id)
+    def __init__(self, part: AgentSlice, bus: Bus, keys: Keys, cfg: RunConfig,
+                 *, node_hook: Callable[[Any], None] | None = None) -> None:
+        super().__init__(part, bus, keys, cfg)
+        self.part = part
+        self.id = agent_id = part.agent_id
         self.name = f"agent {agent_id}"
-        if node is None:
-            from agents.simulate import make_channel, make_nodes
-
-            node = make_nodes(exp, make_channel(exp))[i]
-        self.node = node
-        self.est_schema = Schema({"est": {"x": self._payload_shape()}})
+        self.node = node = part.node
+        self.est_schema = Schema({"est": {"x": tuple(part.payload_shape)}})
         if node_hook is not None:
             node_hook(self.node)
-        self.in_ids = [exp.agent_ids[j] for j in exp.in_neighbours(i)]
-        self.out_ids = [exp.agent_ids[j] for j in exp.out_neighbours(i)]
+        self.in_ids = list(part.in_ids)
+        self.out_ids = list(part.out_ids)
         self.member = False
         self.meas: dict[int, tuple[np.ndarray | None, np.ndarray, float]] = {}
         self.arrived: dict[int, set[int]] = {}
@@ -74,20 +70,11 @@ class AgentProcess(Role):
         self._held: tuple[int, np.ndarray, float] | None = None  # lockstep: a round waiting for the view
         self._error: Exception | None = None  # raised in the consumer's _step
         if node.strategy is not None and reads_view(node.strategy):
-            self.view = NetworkView(exp, agent_id, node.channel)
+            if part.view is None:
+                raise RSEError(f"agent {agent_id}: an omniscient adversary without its view in the slice")
+            self.view = NetworkView(part.view, node.channel)
             node.view = self.view
             self._done_schema = self.wire.done
-
-    def _payload_shape(self) -> tuple[int, ...]:
-        """The shape of an estimate message: a dry run of a copy of this agent's estimator
-        (every agent of a scenario publishes the same shape; others are rejected)."""
-        import copy
-
-        try:
-            est = copy.deepcopy(self.node.estimator)
-            return tuple(np.shape(est.step(0, None, {})))
-        except Exception:
-            return (self.exp.n,)
 
     def on_reject(self, sender: int | None) -> None:
         if sender is not None:
@@ -120,7 +107,7 @@ class AgentProcess(Role):
             if member and not self.member:
                 self.member = True
                 if m.stamp > 0:
-                    self.silent_until = m.stamp + int(math.ceil(self.cfg.warmup / self.exp.dt))
+                    self.silent_until = m.stamp + int(math.ceil(self.cfg.warmup / self.part.dt))
                 log.info("agent %d: joined the team at round %d", self.id, m.stamp)
             elif not member and self.member:
                 self.member = False
@@ -168,7 +155,7 @@ class AgentProcess(Role):
                 self.rejects.add(p.sender, exc.reason)
                 return
             to, stamps = m.arrays["to"], m.arrays["stamps"]
-            if (p.sender not in self.view.index_of or stamps.size != to.size or to.size > self.exp.N
+            if (p.sender not in self.view.index_of or stamps.size != to.size or to.size > self.part.N
                     or not all(float(v).is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
                 self.rejects.add(p.sender, "range")
                 return
@@ -325,7 +312,7 @@ class AgentProcess(Role):
             self.bus.publish(self._ready_key, _msg("ctl", self.id, 0, {}))
 
     async def run(self) -> dict[str, Any]:
-        exp, keys, bus, cfg = self.exp, self.keys, self.bus, self.cfg
+        keys, bus, cfg = self.keys, self.bus, self.cfg
         bus.subscribe(self._loc_key, self.queue)
         if self.view is None:
             for j in self.in_ids:
@@ -381,6 +368,15 @@ class AgentProcess(Role):
 
 async def run_agent(exp: Experiment, agent_id: int, bus: Bus, keys: Keys, cfg: RunConfig,
                     *, node_hook: Callable[[Any], None] | None = None, node: Any = None) -> dict[str, Any]:
-    """Agent ``agent_id`` (1-based id) until the plant stops the team. ``node``: its
-    :class:`~agents.node.AgentNode` if already built (else built here, as the simulator does)."""
-    return await AgentProcess(exp, agent_id, bus, keys, cfg, node_hook=node_hook, node=node).run()
+    """Agent ``agent_id`` (1-based id) of experiment ``exp`` until the plant stops the team.
+    ``node``: its :class:`~agents.node.AgentNode` if already built (else built here, as the
+    simulator does). A process that runs one agent uses :func:`run_agent_slice`."""
+    from .slices import agent_slice
+
+    return await run_agent_slice(agent_slice(exp, agent_id, node), bus, keys, cfg, node_hook=node_hook)
+
+
+async def run_agent_slice(part: AgentSlice, bus: Bus, keys: Keys, cfg: RunConfig,
+                          *, node_hook: Callable[[Any], None] | None = None) -> dict[str, Any]:
+    """The agent of slice ``part`` (:mod:`agents.net.slices`) until the plant stops the team."""
+    return await AgentProcess(part, bus, keys, cfg, node_hook=node_hook).run()

@@ -1,8 +1,11 @@
 """``rse run``: one process per role of a scenario, supervised.
 
 The launcher builds the experiment once (to validate the scenario and write
-``manifest.json`` / ``design.json``), picks one free loopback port per process, and starts
-the plant, the monitor and one process per agent with the ``spawn`` start method. It
+``manifest.json`` / ``design.json``, the offline design included), writes each agent's
+slice of it (:mod:`agents.net.slices`, ``RUN_DIR/team/agent-I.pkl``), picks one free
+loopback port per process, and starts the plant, the monitor and one process per agent
+with the ``spawn`` start method (:mod:`agents.net.child`; the children do not re-import
+the launching program's ``__main__``, so an agent process imports no CLI library). It
 opens no Zenoh session itself: every session lives in a child (:func:`run_role`), which
 listens on its port and connects to every other member's port (Zenoh peers on loopback,
 multicast scouting off), or is a client of the routers given with ``--connect``.
@@ -30,7 +33,6 @@ watch).
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import json
 import logging
@@ -39,15 +41,15 @@ import os
 import signal
 import sys
 import time
+import types
 import uuid
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from estimation.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError,
-                               TransportError, describe, exit_status)
+from estimation.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError
 
-from .parent import die_with_parent as _die_with_parent
+from .child import ChildSpec, child_entry
 from .protocol import RunConfig
 
 log = logging.getLogger("rse.net")
@@ -56,198 +58,9 @@ STOP_GRACE_S = 1.0  # SIGTERM -> SIGKILL
 END_GRACE_S = 5.0  # after the monitor finished, how long the others may take to exit
 
 
-@dataclass
-class ChildSpec:
-    """Everything a role process needs (picklable; sessions are opened in the child)."""
-
-    role: str  # "plant", "monitor" or "agent"
-    scenario: str
-    overrides: tuple[str, ...]
-    seed: int | None
-    run_id: str
-    cfg: RunConfig
-    session: Any  # transport.zenoh_session.SessionOptions
-    agent_id: int | None = None
-    out_dir: str | None = None
-    conn: Any = None  # the monitor's progress pipe to the launcher
-    log_level: int = logging.WARNING
-    watch_parent: bool = False
-    # the launcher's built experiment, pickled (no rebuild), or the path of that pickle: a
-    # path keeps the spec small, so that starting a child does not wait for it to read it
-    experiment: bytes | str | None = None
-    node: bytes | str | None = None  # an agent's built AgentNode, pickled (no design in the child), or its path
-    dashboard: Any = None  # the monitor's agents.dashboard.DashboardOptions (None: no Rerun output)
-
-    @property
-    def label(self) -> str:
-        return f"agent {self.agent_id}" if self.role == "agent" else self.role
-
-
 def safe_run_id(name: str) -> str:
     stem = "".join(c if c.isalnum() or c in "_.-" else "-" for c in name)[:40].strip("-_.") or "run"
     return f"{stem}-{uuid.uuid4().hex[:8]}"
-
-
-# ------------------------------------------------------------------------- child side
-
-
-def _open(opts: Any) -> Any:
-    from transport.zenoh_session import SessionOptions, open_session, tcp_endpoint
-
-    try:
-        return open_session(opts)
-    except TransportError:
-        if opts.mode != "peer" or not opts.listen or opts.listen == (tcp_endpoint(0),):
-            raise
-        # our port was taken meanwhile: listen on any port; we still connect to the others
-        return open_session(SessionOptions(mode="peer", listen=(tcp_endpoint(0),), connect=opts.connect))
-
-
-#: niceness increment of the monitor process (0: none)
-MONITOR_NICE = 10
-
-
-async def _role_main(spec: ChildSpec, exp: Any) -> Any:
-    from transport.keys import Keys
-    from transport.zenoh_bus import ZenohBus
-    from transport.zenoh_session import close_session
-
-    loop = asyncio.get_running_loop()
-    task = asyncio.current_task()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, task.cancel)
-    watcher = None
-    if spec.watch_parent:
-        parent = os.getppid()
-
-        async def watch() -> None:
-            while os.getppid() == parent:
-                await asyncio.sleep(0.5)
-            task.cancel()
-
-        watcher = asyncio.ensure_future(watch())
-    if spec.role == "monitor" and MONITOR_NICE:
-        # The monitor only records: on a machine shared with the team it yields the CPU
-        # to the plant and agents, whose rounds it must not slow down (lockstep bounds
-        # its lag by the plant's MAX_AHEAD acknowledgement window).
-        with contextlib.suppress(OSError):
-            os.nice(MONITOR_NICE)
-    session = await asyncio.to_thread(_open, spec.session)
-    log.debug("session open")
-    bus = None
-    try:
-        bus = ZenohBus(session, loop)
-        keys = Keys(spec.run_id)
-        if spec.role == "plant":
-            from .plant import run_plant
-
-            return await run_plant(exp, bus, keys, spec.cfg)
-        if spec.role == "agent":
-            node = None
-            if spec.node is not None:
-                import pickle
-
-                node = pickle.loads(_blob(spec.node))
-            from .agent import run_agent
-
-            return await run_agent(exp, spec.agent_id, bus, keys, spec.cfg, node=node)
-        conn = spec.conn
-
-        def progress(kind: str, data: Any) -> None:
-            if conn is not None:
-                try:
-                    conn.send((kind, data))
-                except (OSError, ValueError):
-                    pass
-
-        out = Path(spec.out_dir) if spec.out_dir else None
-        dash = None
-        try:
-            if spec.dashboard is not None:
-                from agents.dashboard import Dashboard
-
-                # one recording per run: its id is the run id
-                dash = Dashboard(exp, run_id=spec.run_id, options=spec.dashboard)
-                progress("urls", dict(spec.dashboard.urls))
-            from .monitor import run_monitor
-
-            res = await run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress, dashboard=dash)
-            if dash is not None and spec.dashboard.serve_web:
-                # the run is over: keep serving the recording until SIGINT / SIGTERM
-                bus.close()
-                progress("serving", dict(spec.dashboard.urls))
-                await asyncio.Event().wait()
-            return res
-        finally:
-            if dash is not None:
-                dash.close()
-    finally:
-        if watcher is not None:
-            watcher.cancel()
-        if bus is not None:
-            bus.close()
-        close_session(session)
-
-
-def _blob(b: bytes | str) -> bytes:
-    return Path(b).read_bytes() if isinstance(b, str) else b
-
-
-def run_role(spec: ChildSpec) -> int:
-    """Run one role in this process until the team stops; returns an exit status.
-
-    Errors are one line on stderr naming the role: 2 bad scenario, 1 failure, 130
-    interrupted (SIGINT / SIGTERM).
-    """
-    from agents.console import error
-
-    level = logging.DEBUG if os.environ.get("RSE_NET_DEBUG") else spec.log_level
-    logging.basicConfig(level=level, format=f"%(relativeCreated)6.0f ms rse {spec.label}: %(message)s",
-                        stream=sys.stderr, force=True)
-    for noisy in ("zenoh", "transport"):
-        logging.getLogger(noisy).setLevel(max(level, logging.INFO))
-    try:
-        if spec.experiment is not None:
-            import pickle
-
-            exp = pickle.loads(_blob(spec.experiment))
-        else:
-            from agents.runs import load_experiment
-
-            exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
-        log.debug("scenario built")
-        prof_dir = os.environ.get("RSE_PROFILE")  # a directory: one cProfile dump per process
-        if prof_dir:
-            import cProfile
-
-            prof = cProfile.Profile(time.thread_time)  # CPU of this thread, not waits
-            try:
-                prof.runcall(asyncio.run, _role_main(spec, exp))
-            finally:
-                prof.dump_stats(os.path.join(prof_dir, spec.label.replace(" ", "-") + ".prof"))
-        else:
-            asyncio.run(_role_main(spec, exp))
-        return EXIT_OK
-    except (KeyboardInterrupt, asyncio.CancelledError):
-        return EXIT_INTERRUPTED
-    except (RSEError, OSError) as exc:
-        error(f"{spec.label}: {describe(exc)}")
-        return exit_status(exc)
-    except Exception as exc:
-        if os.environ.get("RSE_DEBUG"):
-            raise
-        error(f"{spec.label}: {describe(exc)}")
-        return EXIT_FAILED
-
-
-def child_entry(spec: ChildSpec) -> None:
-    """Target of the spawned processes."""
-    _die_with_parent()
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    code = run_role(spec)
-    sys.stderr.flush()
-    os._exit(code)  # multiprocessing's own exit path would try to join feeder threads
 
 
 # ------------------------------------------------------------------------ launcher side
@@ -314,6 +127,27 @@ class LaunchResult:
     leaves: list[str]
 
 
+PEER_RETRY_MS = 50  # a peer retries a connect endpoint that is not listening yet this soon
+
+
+def peer_links(slices: Any) -> dict[str, set[str]]:
+    """Process name -> the processes it exchanges messages with: the plant and the monitor
+    with everyone; an agent with its in- and out-neighbours; an omniscient adversary also
+    with the other in-neighbours of its out-neighbours (whose messages its view reads)."""
+    agents = {f"agent {s.agent_id}" for s in slices}
+    links: dict[str, set[str]] = {"plant": {"monitor", *agents}, "monitor": {"plant", *agents}}
+    for s in slices:
+        me = f"agent {s.agent_id}"
+        near = set(s.in_ids) | set(s.out_ids)
+        if s.view is not None:
+            near |= {j for v in s.view.before.values() for j in v} | set(s.view.needed)
+        links[me] = {"plant", "monitor"} | {f"agent {j}" for j in near if j != s.agent_id}
+    for nm, others in list(links.items()):  # symmetric
+        for o in others:
+            links.setdefault(o, set()).add(nm)
+    return links
+
+
 def _distinct_ports(n: int) -> list[int]:
     from transport.zenoh_session import free_tcp_port
 
@@ -375,6 +209,12 @@ def launch(
         from agents.runs import load_experiment
 
         exp, frozen = load_experiment(scenario, overrides, seed)
+    from agents.simulate import make_channel, make_nodes
+
+    from .slices import agent_slices, write_slices
+
+    # the nodes built once, as the simulator does; each agent gets its own slice
+    slices = agent_slices(exp, make_nodes(exp, make_channel(exp)))
     run_id = run_id or safe_run_id(exp.scenario.run.name)
     run_dir.mkdir(parents=True, exist_ok=True)
     names = ["plant", "monitor"] + [f"agent {a}" for a in exp.agent_ids]
@@ -399,8 +239,13 @@ def launch(
     else:
         ports = _distinct_ports(len(names))
         endpoints = {nm: tcp_endpoint(p) for nm, p in zip(names, ports)}
-        sessions = {nm: SessionOptions(mode="peer", listen=(endpoints[nm],),
-                                       connect=tuple(endpoints[o] for o in names if o != nm)) for nm in names}
+        # each process linked to the ones it talks to (not a full mesh): it connects to
+        # those started before it, the later ones connect to it
+        links = peer_links(slices)
+        order = {nm: i for i, nm in enumerate(names)}
+        sessions = {nm: SessionOptions(mode="peer", listen=(endpoints[nm],), gossip=False, retry_ms=PEER_RETRY_MS,
+                                       connect=tuple(endpoints[o] for o in names if o in links[nm] and order[o] < order[nm]))
+                    for nm in names}
     team = Team(run_id, endpoints, "client" if connect else "peer", tuple(connect), str(scenario), tuple(overrides), seed, cfg,
                 router=router_ep, secure=str(Path(secure).resolve()) if secure is not None else None)
     write_manifest(run_dir, exp, frozen or {}, driver="run", run_id=run_id,
@@ -425,14 +270,12 @@ def launch(
         "monitor": ChildSpec(role="monitor", session=sessions["monitor"], out_dir=str(run_dir), conn=send_conn,
                              dashboard=dashboard, **base),
     }
-    from agents.simulate import make_channel, make_nodes
-
-    nodes = make_nodes(exp, make_channel(exp))  # built once, as the simulator does
-    for a, node in zip(exp.agent_ids, nodes):
-        path = cache / f"agent-{a}.pkl"
-        path.write_bytes(pickle.dumps(node))  # a fresh node, also for `rse agent --team` (fast rejoin)
-        specs[f"agent {a}"] = ChildSpec(role="agent", agent_id=a, session=sessions[f"agent {a}"],
-                                        node=str(path.resolve()), **base)
+    # each agent reads its slice (as does `rse agent --team`, for a fast rejoin), not the experiment
+    paths = write_slices(cache, slices)
+    agent_base = {k: v for k, v in base.items() if k != "experiment"}
+    for a in exp.agent_ids:
+        specs[f"agent {a}"] = ChildSpec(role="agent", agent_id=a, session=sessions[f"agent {a}"], node=str(paths[a]),
+                                        **agent_base)
     procs: dict[str, Any] = {}
     failures: list[str] = []
     leaves: list[str] = []
@@ -457,7 +300,8 @@ def launch(
                 return LaunchResult(EXIT_INTERRUPTED, run_dir, run_id, None, failures, leaves)
         for name in names:
             p = ctx.Process(target=child_entry, args=(specs[name],), name=f"rse-{name.replace(' ', '-')}", daemon=True)
-            p.start()
+            with _bare_main():
+                p.start()
             procs[name] = p
         send_conn.close()  # the monitor holds the writing end now
         team.pids = {nm: p.pid for nm, p in procs.items()}
@@ -592,7 +436,8 @@ def _start_router(ctx: Any, endpoint: str, tls: Any, agent_ids: Any, run_id: str
     from .router import router_entry
 
     p = ctx.Process(target=router_entry, args=(args, ready), name="rse-router", daemon=True)
-    p.start()
+    with _bare_main():
+        p.start()
     end = time.monotonic() + ROUTER_START_S
     while not ready.wait(0.05):
         if stopping or p.exitcode is not None or time.monotonic() > end:
@@ -603,6 +448,20 @@ def _start_router(ctx: Any, endpoint: str, tls: Any, agent_ids: Any, run_id: str
                 return None
             raise RSEError(f"the router on {endpoint} did not start: {why}")
     return p
+
+
+@contextlib.contextmanager
+def _bare_main() -> Any:
+    """While a child is spawned, hide the launching program's ``__main__`` (the ``rse``
+    script, a notebook, a test runner): ``spawn`` would import it again in every child
+    (with the CLI's libraries), and a child needs only :func:`child_entry`'s module."""
+    real = sys.modules.get("__main__")
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        if real is not None:
+            sys.modules["__main__"] = real
 
 
 def _is_main_thread() -> bool:

@@ -136,12 +136,14 @@ def who_name(sender: int | None) -> str:
 
 
 class Wire:
-    """The schemas of one scenario's messages."""
+    """The schemas of one scenario's messages (``team``: the experiment, or an agent's
+    slice: ``n``, ``N`` and ``ny`` or ``bank_rows``)."""
 
-    def __init__(self, exp: Experiment) -> None:
-        n, N = exp.n, exp.N
+    def __init__(self, team: Any) -> None:
+        n, N = team.n, team.N
         self.n, self.N = n, N
-        self.ny = int(sum(len(r) for r in exp.bank_rows))
+        ny = getattr(team, "ny", None)
+        self.ny = int(sum(len(r) for r in team.bank_rows)) if ny is None else int(ny)
         self.loc = Schema({"meas": {"y": (None,), "wait": (None, 2)}, "ctl": {"wait": (None, 2)}})
         self.truth = Schema({"truth": {"x": (n,)}})
         self.est = Schema({"est": {"x": (None,)}})

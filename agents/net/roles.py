@@ -14,17 +14,19 @@ from typing import TYPE_CHECKING, Any, Callable
 
 from transport.keys import Keys
 
-from .agent import AgentProcess, run_agent
+from .agent import AgentProcess, run_agent, run_agent_slice
 from .monitor import MonitorProcess, MonitorResult, run_monitor
 from .plant import PlantProcess, run_plant
 from .protocol import (MODES, Rejects, Role, RunConfig, Wire, _msg, diagnostics_from_meta, diagnostics_meta,
                        maxrss_mb, who_name)
-from .view import NetworkView, reads_view, simulator_order
+from .slices import AgentSlice, agent_slices, read_slice, write_slices
+from .view import NetworkView, ViewTopology, reads_view, simulator_order, view_topology
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
 
-__all__ = ["MODES", "AgentProcess", "MonitorProcess", "MonitorResult", "NetworkView", "PlantProcess", "Rejects", "Role",
+__all__ = ["MODES", "AgentProcess", "AgentSlice", "ViewTopology", "agent_slices", "read_slice", "run_agent_slice",
+           "view_topology", "write_slices", "MonitorProcess", "MonitorResult", "NetworkView", "PlantProcess", "Rejects", "Role",
            "RunConfig", "Wire", "_msg", "diagnostics_from_meta", "diagnostics_meta", "maxrss_mb", "reads_view",
            "run_agent", "run_monitor", "run_plant", "run_team_in_memory", "simulator_order", "who_name"]
 
@@ -40,8 +42,8 @@ async def run_team_in_memory(exp: Experiment, cfg: RunConfig, *, run_id: str = "
     buses = [hub.bus() for _ in range(exp.N + 2)]
     try:
         mon = asyncio.ensure_future(run_monitor(exp, buses[0], keys, cfg, out_dir=out_dir))
-        agents = [asyncio.ensure_future(run_agent(exp, aid, buses[2 + i], keys, cfg, node_hook=node_hook))
-                  for i, aid in enumerate(exp.agent_ids)]
+        agents = [asyncio.ensure_future(run_agent_slice(part, buses[2 + i], keys, cfg, node_hook=node_hook))
+                  for i, part in enumerate(agent_slices(exp))]
         plant = asyncio.ensure_future(run_plant(exp, buses[1], keys, cfg))
         await asyncio.gather(plant, *agents)
         return await mon

@@ -4,6 +4,7 @@ Byzantine agent's out-neighbours will use next round, read off the messages of t
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
@@ -24,6 +25,48 @@ def simulator_order(exp: Experiment) -> dict[int, int]:
     return {exp.agent_ids[i]: r for r, i in enumerate(order)}
 
 
+@dataclass(frozen=True)
+class ViewTopology:
+    """What :class:`NetworkView` needs of the team (picklable, part of an agent's slice).
+
+    me : the Byzantine agent's id; agent_ids : every agent id, in index order
+    out : my out-neighbours; before : receiver -> its in-neighbours (not me) that act
+        before me in the simulator's order, in that order
+    needed : the agents whose round-``k`` messages the view waits for
+    masks : receiver -> sender id -> the receiver estimator's ``uses(sender_index)`` mask
+        (receivers without ``uses`` are left out: every component counts)
+    """
+
+    me: int
+    agent_ids: tuple[int, ...]
+    out: tuple[int, ...]
+    before: dict[int, tuple[int, ...]]
+    needed: tuple[int, ...]
+    masks: dict[int, dict[int, Any]] = field(default_factory=dict)
+
+
+def view_topology(exp: Experiment, me: int, estimators: dict[int, Any] | None = None) -> ViewTopology:
+    """The :class:`ViewTopology` of Byzantine agent ``me`` in ``exp``; ``estimators``:
+    agent id -> estimator of each out-neighbour (for their ``uses`` masks; built with
+    ``exp.make_estimator`` when not given; ``{}``: no masks)."""
+    rank = simulator_order(exp)
+    ids = exp.agent_ids
+    index_of = {aid: i for i, aid in enumerate(ids)}
+    out = tuple(ids[j] for j in exp.out_neighbours(index_of[me]))
+    before: dict[int, tuple[int, ...]] = {}
+    for j in out:
+        ins = [ids[s] for s in exp.in_neighbours(index_of[j])]
+        before[j] = tuple(sorted((s for s in ins if s != me and rank[s] < rank[me]), key=rank.__getitem__))
+    needed = tuple(sorted({s for v in before.values() for s in v}))
+    masks: dict[int, dict[int, Any]] = {}
+    for j in out:
+        est = estimators.get(j) if estimators is not None else exp.make_estimator(index_of[j])
+        uses = getattr(est, "uses", None)
+        if uses is not None:
+            masks[j] = {s: uses(index_of[s]) for s in before[j]}
+    return ViewTopology(me, tuple(ids), out, before, needed, masks)
+
+
 class NetworkView:
     """The omniscient adversary's view over the network: what each out-neighbour ``j``
     of Byzantine agent ``me`` will use next round, exactly as
@@ -35,7 +78,7 @@ class NetworkView:
     ``k`` that ``j``'s other in-neighbours sent to ``j`` and that the channel model makes
     visible to ``j`` at ``k + 1`` -- only from agents that act before ``me`` in the
     simulator's order (regular agents, then Byzantine ones by index) -- masked by ``j``'s
-    estimator's ``uses(sender_index)`` when it has one, in the simulator's order (so the
+    estimator's ``uses(sender_index)`` when it has one (precomputed: :class:`ViewTopology`), in the simulator's order (so the
     sums are bit-identical). In lockstep the agent publishes round ``k`` only once
     :meth:`ready` (every such agent's round-``k`` messages to ``me``'s out-neighbours have
     arrived, or it is not alive) or the deadline passed.
@@ -43,26 +86,19 @@ class NetworkView:
 
     MAX_STORED = 1 << 14
 
-    def __init__(self, exp: Experiment, me: int, channel: Any, uses: dict[int, Any] | None = None) -> None:
+    def __init__(self, topo: ViewTopology, channel: Any) -> None:
         self.k = 0
-        self.me = me
+        self.me = topo.me
         self.channel = channel
-        rank = simulator_order(exp)
-        ids = exp.agent_ids
-        self.index_of = {aid: i for i, aid in enumerate(ids)}
-        i_me = self.index_of[me]
-        self.out = [ids[j] for j in exp.out_neighbours(i_me)]
+        self.index_of = {aid: i for i, aid in enumerate(topo.agent_ids)}
+        self.out = list(topo.out)
         self.out_set = set(self.out)
         #: receiver -> its in-neighbours that act before me, in the simulator's order
-        self.before: dict[int, list[int]] = {}
-        for j in self.out:
-            ins = [ids[s] for s in exp.in_neighbours(self.index_of[j])]
-            self.before[j] = sorted((s for s in ins if s != me and rank[s] < rank[me]), key=rank.__getitem__)
+        self.before = {j: list(v) for j, v in topo.before.items()}
         #: the agents whose round-k messages the view needs
-        self.needed = sorted({s for v in self.before.values() for s in v})
-        if uses is None:
-            uses = {j: getattr(exp.make_estimator(self.index_of[j]), "uses", None) for j in self.out}
-        self.uses = uses
+        self.needed = list(topo.needed)
+        #: receiver -> sender id -> the payload mask of the receiver's ``uses`` (None: all)
+        self.masks = topo.masks
         self.bcast: dict[tuple[int, int], np.ndarray] = {}
         self.addr: dict[tuple[int, int, int], np.ndarray] = {}
         self.done: dict[int, dict[int, list[tuple[int, int]]]] = {}
@@ -108,7 +144,7 @@ class NetworkView:
 
     def others_for(self, receiver: int, sender: int) -> list[np.ndarray]:
         k = self.k
-        uses = self.uses.get(receiver)
+        masks = self.masks.get(receiver)
         fate = self.channel.fate
         out = []
         for s in self.before.get(receiver, ()):
@@ -120,7 +156,7 @@ class NetworkView:
             if v is None or fate(s, receiver, k) != k + 1:
                 continue
             v = np.asarray(v, dtype=float)
-            out.append(v * uses(self.index_of[s]) if uses is not None else v)
+            out.append(v * masks[s] if masks is not None else v)
         return out
 
     def forget(self, k: int) -> None:

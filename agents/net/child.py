@@ -1,0 +1,238 @@
+"""The child side of ``rse run``: one role in this process (:func:`run_role`).
+
+The launcher (:mod:`agents.net.launcher`) starts each child with :func:`child_entry` and a
+:class:`ChildSpec`. An agent child reads its slice of the built experiment
+(:mod:`agents.net.slices`) and imports only its role's module (:mod:`agents.net.agent`):
+numpy, Zenoh, msgpack, its estimator and the round logic; the plant and the monitor read the
+pickled experiment. The same function runs a role in the foreground for ``rse plant``,
+``rse agent`` and ``rse monitor``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from estimation.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError, TransportError, describe, exit_status
+
+from .parent import die_with_parent as _die_with_parent
+from .protocol import RunConfig
+
+log = logging.getLogger("rse.net")
+
+
+@dataclass
+class ChildSpec:
+    """Everything a role process needs (picklable; sessions are opened in the child)."""
+
+    role: str  # "plant", "monitor" or "agent"
+    scenario: str
+    overrides: tuple[str, ...]
+    seed: int | None
+    run_id: str
+    cfg: RunConfig
+    session: Any  # transport.zenoh_session.SessionOptions
+    agent_id: int | None = None
+    out_dir: str | None = None
+    conn: Any = None  # the monitor's progress pipe to the launcher
+    log_level: int = logging.WARNING
+    watch_parent: bool = False
+    # the launcher's built experiment, pickled (no rebuild), or the path of that pickle: a
+    # path keeps the spec small, so that starting a child does not wait for it to read it
+    experiment: bytes | str | None = None
+    # an agent's slice of the built experiment (agents.net.slices: its node, neighbours, the
+    # channel's seeds), pickled, or its path: an agent process reads this and no experiment
+    node: bytes | str | None = None
+    dashboard: Any = None  # the monitor's agents.dashboard.DashboardOptions (None: no Rerun output)
+
+    @property
+    def label(self) -> str:
+        return f"agent {self.agent_id}" if self.role == "agent" else self.role
+
+
+
+def _open(opts: Any) -> Any:
+    from transport.zenoh_session import SessionOptions, open_session, tcp_endpoint
+
+    try:
+        return open_session(opts)
+    except TransportError:
+        if opts.mode != "peer" or not opts.listen or opts.listen == (tcp_endpoint(0),):
+            raise
+        # our port was taken meanwhile: listen on any port; we still connect to the others
+        return open_session(SessionOptions(mode="peer", listen=(tcp_endpoint(0),), connect=opts.connect))
+
+
+#: niceness increment of the monitor process (0: none)
+MONITOR_NICE = 10
+
+
+async def _role_main(spec: ChildSpec, exp: Any) -> Any:
+    from transport.keys import Keys
+    from transport.zenoh_bus import ZenohBus
+    from transport.zenoh_session import close_session
+
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, task.cancel)
+    watcher = None
+    if spec.watch_parent:
+        parent = os.getppid()
+
+        async def watch() -> None:
+            while os.getppid() == parent:
+                await asyncio.sleep(0.5)
+            task.cancel()
+
+        watcher = asyncio.ensure_future(watch())
+    if spec.role == "monitor" and MONITOR_NICE:
+        # The monitor only records: on a machine shared with the team it yields the CPU
+        # to the plant and agents, whose rounds it must not slow down (lockstep bounds
+        # its lag by the plant's MAX_AHEAD acknowledgement window).
+        with contextlib.suppress(OSError):
+            os.nice(MONITOR_NICE)
+    session = await asyncio.to_thread(_open, spec.session)
+    log.debug("session open")
+    bus = None
+    try:
+        bus = ZenohBus(session, loop)
+        keys = Keys(spec.run_id)
+        if spec.role == "plant":
+            from .plant import run_plant
+
+            return await run_plant(exp, bus, keys, spec.cfg)
+        if spec.role == "agent":
+            from .agent import run_agent_slice
+
+            return await run_agent_slice(exp, bus, keys, spec.cfg)
+        conn = spec.conn
+
+        def progress(kind: str, data: Any) -> None:
+            if conn is not None:
+                try:
+                    conn.send((kind, data))
+                except (OSError, ValueError):
+                    pass
+
+        out = Path(spec.out_dir) if spec.out_dir else None
+        dash = None
+        try:
+            if spec.dashboard is not None:
+                from agents.dashboard import Dashboard
+
+                # one recording per run: its id is the run id
+                dash = Dashboard(exp, run_id=spec.run_id, options=spec.dashboard)
+                progress("urls", dict(spec.dashboard.urls))
+            from .monitor import run_monitor
+
+            res = await run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress, dashboard=dash)
+            if dash is not None and spec.dashboard.serve_web:
+                # the run is over: keep serving the recording until SIGINT / SIGTERM
+                bus.close()
+                progress("serving", dict(spec.dashboard.urls))
+                await asyncio.Event().wait()
+            return res
+        finally:
+            if dash is not None:
+                dash.close()
+    finally:
+        if watcher is not None:
+            watcher.cancel()
+        if bus is not None:
+            bus.close()
+        close_session(session)
+
+
+def _blob(b: bytes | str) -> bytes:
+    return Path(b).read_bytes() if isinstance(b, str) else b
+
+
+def run_role(spec: ChildSpec) -> int:
+    """Run one role in this process until the team stops; returns an exit status.
+
+    Errors are one line on stderr naming the role: 2 bad scenario, 1 failure, 130
+    interrupted (SIGINT / SIGTERM).
+    """
+    level = logging.DEBUG if os.environ.get("RSE_NET_DEBUG") else spec.log_level
+    logging.basicConfig(level=level, format=f"%(relativeCreated)6.0f ms rse {spec.label}: %(message)s",
+                        stream=sys.stderr, force=True)
+    for noisy in ("zenoh", "transport"):
+        logging.getLogger(noisy).setLevel(max(level, logging.INFO))
+    try:
+        if spec.role == "agent":
+            exp = _agent_slice(spec)  # the agent's own part, not the experiment
+        elif spec.experiment is not None:
+            import pickle
+
+            exp = pickle.loads(_blob(spec.experiment))
+        else:
+            from agents.runs import load_experiment
+
+            exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
+        log.debug("scenario built")
+        prof_dir = os.environ.get("RSE_PROFILE")  # a directory: one cProfile dump per process
+        if prof_dir:
+            import cProfile
+
+            prof = cProfile.Profile(time.thread_time)  # CPU of this thread, not waits
+            try:
+                prof.runcall(asyncio.run, _role_main(spec, exp))
+            finally:
+                prof.dump_stats(os.path.join(prof_dir, spec.label.replace(" ", "-") + ".prof"))
+        else:
+            asyncio.run(_role_main(spec, exp))
+        return EXIT_OK
+    except (KeyboardInterrupt, asyncio.CancelledError):
+        return EXIT_INTERRUPTED
+    except (RSEError, OSError) as exc:
+        _error(f"{spec.label}: {describe(exc)}")
+        return exit_status(exc)
+    except Exception as exc:
+        if os.environ.get("RSE_DEBUG"):
+            raise
+        _error(f"{spec.label}: {describe(exc)}")
+        return EXIT_FAILED
+
+
+def _agent_slice(spec: ChildSpec) -> Any:
+    from .slices import agent_slice, read_slice
+
+    if spec.node is not None:
+        part = read_slice(spec.node)
+        if spec.agent_id is not None and part.agent_id != spec.agent_id:
+            raise ScenarioError(f"the slice of agent {part.agent_id} given to agent {spec.agent_id}")
+        return part
+    from agents.runs import load_experiment
+
+    exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
+    return agent_slice(exp, spec.agent_id)
+
+
+def _error(msg: str) -> None:
+    """One line on stderr (Rich's styling when the process has it loaded already: a lean
+    agent process does not import it for this)."""
+    if "rich" in sys.modules:
+        from agents.console import error
+
+        error(msg)
+    else:
+        print(f"error: {msg}", file=sys.stderr, flush=True)
+
+
+def child_entry(spec: ChildSpec) -> None:
+    """Target of the spawned processes."""
+    _die_with_parent()
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    code = run_role(spec)
+    sys.stderr.flush()
+    os._exit(code)  # multiprocessing's own exit path would try to join feeder threads

@@ -1,0 +1,138 @@
+"""An agent's slice of a built experiment: what one agent process needs, nothing more.
+
+The launcher builds the experiment once (the offline design included) and hands each agent
+process its :class:`AgentSlice`: its :class:`~agents.node.AgentNode` (its estimator with
+its design, the channel model with the run's seeds, its in- and out-neighbours, its
+Byzantine strategy), the team's ids and message sizes, and, for an omniscient adversary,
+the :class:`~agents.net.view.ViewTopology` of its receivers. Unpickling a slice imports
+numpy, the estimator's module and the round logic; not the scenario schema (pydantic),
+the design stack (cvxpy, networkx, scipy's design routines), Rerun or pyarrow.
+
+A slice is written to ``RUN_DIR/team/agent-I.pkl`` (:func:`write_slices`), so that
+``rse agent --id I --team RUN_DIR/team.json`` (on this host, in a container or on another
+host with a copy of that file) starts the agent without the scenario file or its design.
+"""
+
+from __future__ import annotations
+
+import copy
+import pickle
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+
+from estimation.errors import ScenarioError
+
+from .view import ViewTopology, reads_view, view_topology
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
+
+#: a slice file's first bytes (a pickle of a dict with this "format" is refused if it differs)
+FORMAT = "rse-agent-slice/1"
+
+
+@dataclass
+class AgentSlice:
+    """One agent's part of a built experiment (picklable).
+
+    agent_id : the agent's id; agent_ids : the team's ids, in index order
+    n, N, ny : state dimension, team size, total measurement rows (message bounds)
+    dt : the scenario's step (s); payload_shape : the shape of the agent's estimate message
+    in_ids, out_ids : its in- and out-neighbours' ids
+    node : its :class:`~agents.node.AgentNode` (estimator, channel model, strategy)
+    view : the omniscient adversary's topology (None for every other agent)
+    """
+
+    agent_id: int
+    agent_ids: tuple[int, ...]
+    n: int
+    N: int
+    ny: int
+    dt: float
+    payload_shape: tuple[int, ...]
+    in_ids: tuple[int, ...]
+    out_ids: tuple[int, ...]
+    node: Any
+    view: ViewTopology | None = None
+
+
+def payload_shape(estimator: Any, n: int) -> tuple[int, ...]:
+    """The shape of an estimate message: a dry run of a copy of ``estimator`` (every agent
+    of a scenario publishes the same shape; others are rejected)."""
+    try:
+        return tuple(np.shape(copy.deepcopy(estimator).step(0, None, {})))
+    except Exception:
+        return (n,)
+
+
+def agent_slices(exp: Experiment, nodes: Sequence[Any] | None = None) -> list[AgentSlice]:
+    """Every agent's slice of ``exp`` (``nodes``: fresh nodes built as the simulator builds
+    them, :func:`agents.simulate.make_nodes`; built here when not given)."""
+    if nodes is None:
+        from agents.simulate import make_channel, make_nodes
+
+        nodes = make_nodes(exp, make_channel(exp))
+    ids = tuple(exp.agent_ids)
+    ny = int(sum(len(r) for r in exp.bank_rows))
+    by_id = {nd.id: nd for nd in nodes}
+    shape = payload_shape(nodes[0].estimator, exp.n) if nodes else (exp.n,)
+    out = []
+    for i, (aid, node) in enumerate(zip(ids, nodes)):
+        view = None
+        if node.strategy is not None and reads_view(node.strategy):
+            view = view_topology(exp, aid, {j: by_id[j].estimator for j in by_id})
+        out.append(AgentSlice(aid, ids, exp.n, exp.N, ny, float(exp.dt), shape,
+                              tuple(ids[j] for j in exp.in_neighbours(i)), tuple(ids[j] for j in exp.out_neighbours(i)),
+                              node, view))
+    return out
+
+
+def agent_slice(exp: Experiment, agent_id: int, node: Any = None) -> AgentSlice:
+    """Agent ``agent_id``'s slice of ``exp`` (``node``: its node if already built)."""
+    if agent_id not in exp.agent_ids:
+        raise ScenarioError(f"no agent {agent_id} in this scenario; agents are {', '.join(map(str, exp.agent_ids))}")
+    if node is None:
+        return agent_slices(exp)[exp.agent_ids.index(agent_id)]
+    from agents.simulate import make_channel, make_nodes
+
+    nodes = make_nodes(exp, make_channel(exp))
+    nodes[exp.agent_ids.index(agent_id)] = node
+    return agent_slices(exp, nodes)[exp.agent_ids.index(agent_id)]
+
+
+def slice_path(team_dir: Path, agent_id: int) -> Path:
+    return Path(team_dir) / f"agent-{agent_id}.pkl"
+
+
+def dumps_slice(part: AgentSlice) -> bytes:
+    """The bytes of a slice file (read back with :func:`read_slice`)."""
+    return pickle.dumps({"format": FORMAT, "slice": part}, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def write_slices(team_dir: Path, slices: Sequence[AgentSlice]) -> dict[int, Path]:
+    """Write each slice to ``team_dir/agent-I.pkl``; returns agent id -> path."""
+    team_dir = Path(team_dir)
+    team_dir.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    for s in slices:
+        p = slice_path(team_dir, s.agent_id)
+        p.write_bytes(dumps_slice(s))
+        paths[s.agent_id] = p.resolve()
+    return paths
+
+
+def read_slice(src: Path | bytes) -> AgentSlice:
+    """A slice written by :func:`write_slices` (a path or its bytes)."""
+    where = "an agent slice" if isinstance(src, (bytes, bytearray)) else str(src)
+    try:
+        data = pickle.loads(src if isinstance(src, (bytes, bytearray)) else Path(src).read_bytes())
+    except FileNotFoundError:
+        raise ScenarioError(f"{where}: no such agent slice (rse run writes RUN_DIR/team/agent-I.pkl)") from None
+    except Exception as exc:  # a truncated or foreign file
+        raise ScenarioError(f"{where}: cannot read the agent slice: {exc}") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT or not isinstance(data.get("slice"), AgentSlice):
+        raise ScenarioError(f"{where}: not an agent slice of this version ({FORMAT})")
+    return data["slice"]
