@@ -49,9 +49,10 @@ __all__ = [
 
 def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "lockstep", rate: float | None = None,
              deadline: float = 1.0, startup_timeout: float = 60.0, router: bool = False,
-             progress: bool = False, save_estimates: bool = False) -> RunResult:
+             progress: bool = False, save_estimates: bool = False, agents_per_process: int = 1) -> RunResult:
     """Run ``exp`` as a team of processes over Zenoh on this machine (``rse run``): plant,
-    monitor and one process per agent. Lockstep results equal :func:`simulate`'s.
+    monitor and one process per agent (``agents_per_process``: that many agents share a
+    process). Lockstep results equal :func:`simulate`'s.
 
     Returns when the team has finished; raises :class:`~estimation.errors.RSEError`
     naming the failed process otherwise.
@@ -69,7 +70,7 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
         raise ScenarioError(str(exc)) from None
     run_dir = Path(out) if out is not None else default_run_dir(exp.scenario.run.name)
     res = launch(Path(exp.source), exp.overrides, None, run_dir, cfg, progress=progress, exp=exp, frozen=exp.frozen,
-                 dashboard=None, router=router, say=lambda m: None)
+                 dashboard=None, router=router, say=lambda m: None, agents_per_process=agents_per_process)
     if res.status == EXIT_INTERRUPTED:
         raise KeyboardInterrupt
     if res.status != 0 or res.summary is None:

@@ -17,6 +17,10 @@ cancellation attack) also hears what the runtime's adversary hears (the estimate
 done reports of the agents its view needs, the addressed messages to its out-neighbours)
 and holds its round-``k`` messages until those agents' round-``k`` estimates arrived.
 
+The *minimal* skeleton (``run_skeleton(..., minimal=True)``) is the least a lockstep
+round can send: a clock ticks once per round, each agent publishes one estimate and one
+done once it holds its in-neighbours' previous estimates, no measurement, no monitor.
+
 Usage: ``python -m benchmarks.zenoh_skeleton [N] [ROUNDS]`` (a ring of N agents, n = 6),
 or :func:`run_skeleton` with :func:`sizes_for` of a built experiment.
 """
@@ -86,7 +90,76 @@ def _payload(size: int, k: int) -> bytes:
     return _STAMP.pack(k) + bytes(max(0, size - 8))
 
 
-async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: Any, conn: Any) -> None:
+async def _minimal(role: str, idx: int, sizes: Sizes, rounds: int, keys: Any, bus: Any, q: asyncio.Queue,
+                   conn: Any) -> None:
+    """The minimal lockstep skeleton: a clock ticks once per round (8 bytes); each agent,
+    once it holds its in-neighbours' round k-1 estimates, publishes its estimate (the
+    scenario's estimate size) and an 8-byte done; the clock ticks again when all are done."""
+    ids = sizes.agents
+    N = len(ids)
+    tick = keys.plant_truth()
+    if role == "plant":
+        bus.subscribe(keys.ctl_pattern("done"), q)
+        bus.subscribe(keys.ctl_pattern("ready"), q)
+        bus.announce(keys.alive("plant", 0))
+        ready: set[str] = set()
+        while len(ready) < N:
+            key, p = await q.get()
+            if type(p) is bytes and "/ready/" in key:
+                ready.add(key)
+        t0 = time.perf_counter()
+        for k in range(rounds):
+            bus.publish(tick, _STAMP.pack(k))
+            got = 0
+            while got < N:
+                key, p = await q.get()
+                if type(p) is bytes and "/done/" in key and _STAMP.unpack_from(p)[0] == k:
+                    got += 1
+        elapsed = time.perf_counter() - t0
+        bus.publish(tick, _STAMP.pack(-1))
+        conn.send({"rounds": rounds, "elapsed": elapsed, "rounds_per_s": rounds / elapsed})
+        await asyncio.sleep(0.05)
+        return
+    me, ins = ids[idx], sizes.in_ids[idx]
+    bus.subscribe(tick, q)
+    for j in ins:
+        bus.subscribe(keys.est(j), q)
+    bus.watch(keys.alive_pattern(), q)
+    bus.announce(keys.alive("agent", me))
+    need = {"plant"} | {str(j) for j in ins}
+    seen: set[str] = set()
+    est_key, done_key = keys.est(me), keys.ctl("done", me)
+    arrived: dict[int, int] = {}
+    tick_k: int | None = None
+    sent_ready = False
+    while True:
+        if not sent_ready and need <= seen:
+            bus.publish(keys.ctl("ready", me), b"r")
+            sent_ready = True
+        try:
+            key, p = await asyncio.wait_for(q.get(), 0.1) if not sent_ready else await q.get()
+        except asyncio.TimeoutError:
+            continue
+        if type(p) is bool:
+            parts = key.split("/")
+            seen.add(parts[-2] if parts[-2] != "agent" else parts[-1])
+            continue
+        k = _STAMP.unpack_from(p)[0]
+        if key == tick:
+            if k < 0:
+                return
+            tick_k = k
+        else:
+            arrived[k] = arrived.get(k, 0) + 1
+        if tick_k is not None and (tick_k == 0 or arrived.get(tick_k - 1, 0) >= len(ins)):
+            arrived.pop(tick_k - 1, None)
+            bus.publish(est_key, _payload(sizes.est, tick_k))
+            bus.publish(done_key, _STAMP.pack(tick_k))
+            tick_k = None
+
+
+async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: Any, conn: Any,
+                minimal: bool = False) -> None:
     from transport.keys import Keys
     from transport.zenoh_bus import ZenohBus
     from transport.zenoh_session import close_session, open_session
@@ -98,7 +171,9 @@ async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: 
     ids = sizes.agents
     N = len(ids)
     try:
-        if role == "plant":
+        if minimal:
+            await _minimal(role, idx, sizes, rounds, keys, bus, q, conn)
+        elif role == "plant":
             bus.subscribe(keys.ctl_pattern("done"), q)
             bus.subscribe(keys.ctl_pattern("ready"), q)
             bus.watch(keys.alive_pattern(), q)
@@ -204,19 +279,25 @@ async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: 
         close_session(session)
 
 
-def _child(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: Any, conn: Any) -> None:
-    asyncio.run(_main(role, idx, sizes, rounds, run, opts, conn))
+def _child(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: Any, conn: Any, minimal: bool = False) -> None:
+    asyncio.run(_main(role, idx, sizes, rounds, run, opts, conn, minimal))
     os._exit(0)
 
 
-def run_skeleton(sizes: Sizes, rounds: int = 2000, *, timeout: float = 120.0) -> dict[str, float]:
-    """Run the skeleton; returns ``{"rounds", "elapsed", "rounds_per_s"}`` (lockstep, timed by the plant)."""
+def run_skeleton(sizes: Sizes, rounds: int = 2000, *, timeout: float = 120.0, minimal: bool = False) -> dict[str, float]:
+    """Run the skeleton; returns ``{"rounds", "elapsed", "rounds_per_s"}`` (lockstep, timed by the plant).
+
+    minimal : the minimal skeleton (:func:`_minimal`: a clock and the agents, one estimate
+        and one done per agent and round, no monitor) instead of the runtime's full pattern
+    """
     import uuid
 
     from transport.zenoh_session import SessionOptions, free_tcp_port, tcp_endpoint
 
     N = len(sizes.agents)
     names = ["plant", "monitor"] + [f"agent{i}" for i in range(N)]
+    if minimal:
+        names.remove("monitor")
     ports: list[int] = []
     while len(ports) < len(names):
         p = free_tcp_port()
@@ -230,8 +311,9 @@ def run_skeleton(sizes: Sizes, rounds: int = 2000, *, timeout: float = 120.0) ->
     try:
         for c, name in enumerate(names):
             opts = SessionOptions(mode="peer", listen=(eps[c],), connect=tuple(e for i, e in enumerate(eps) if i != c))
-            role = name if c < 2 else "agent"
-            p = ctx.Process(target=_child, args=(role, c - 2, sizes, rounds, run, opts, send if c == 0 else None),
+            role = name if not name.startswith("agent") else "agent"
+            idx = c - (1 if minimal else 2)
+            p = ctx.Process(target=_child, args=(role, idx, sizes, rounds, run, opts, send if c == 0 else None, minimal),
                             daemon=True)
             p.start()
             procs.append(p)

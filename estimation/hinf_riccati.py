@@ -37,8 +37,6 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
-from scipy.linalg import expm, schur
-from scipy.linalg.lapack import dgesv as _gesv
 
 from .errors import DesignError, NumericalError
 
@@ -204,6 +202,8 @@ def stabilizing_solution(
     St = np.asarray(S, dtype=float) - np.asarray(R, dtype=float) / gamma2
     Ham = np.block([[A.T, -St], [-B @ B.T, -A]])
     scale = max(1.0, np.abs(Ham).max())
+    from scipy.linalg import schur  # here, not at import: a node's process unpickles this module
+
     T, Zs, sdim = schur(Ham, output="real", sort=lambda re, im: re < -1e-10 * scale)
     if sdim != m:
         raise NumericalError(
@@ -302,6 +302,8 @@ class RiccatiFlow:
         St = np.asarray(S, dtype=float) - np.asarray(R, dtype=float) / gamma2
         As = A - Ys @ St
         # Van Loan: expm([[-As', St], [0, As]] h) = [[*, F12], [0, E]], G = E' F12.
+        from scipy.linalg import expm
+
         V = expm(np.block([[-As.T, St], [np.zeros((m, m)), As]]) * self.dt)
         self._E = V[m:, m:]
         self._G = _sym(self._E.T @ V[:m, m:])
@@ -340,6 +342,8 @@ class RiccatiFlow:
         # (I + Delta G)^-1 Delta by LAPACK gesv; det(I + Delta G_s) is 1 at s = 0 and vanishes
         # exactly at an escape time, so a non-positive determinant means the solution went
         # through infinity within this step.
+        from scipy.linalg.lapack import dgesv as _gesv  # imported once, then a dict look-up
+
         lu, piv, X, info = _gesv(self._I + self._Delta @ self._G, self._Delta)
         d = np.diag(lu)
         sign = np.prod(np.sign(d)) * (-1.0) ** np.count_nonzero(piv != np.arange(len(piv)))

@@ -48,7 +48,6 @@ from __future__ import annotations
 from typing import Callable, Mapping
 
 import numpy as np
-from scipy.linalg import expm, matrix_balance
 
 from .base import Inbox, Received
 from .errors import DesignError
@@ -221,6 +220,8 @@ class _NodeBase:
             aug = np.zeros((d + m, d + m))
             aug[:d, :d], aug[:d, d:] = M * self.dt, G * self.dt
             # exact diagonal (powers of 2) balancing: expm(aug) = T expm(T^-1 aug T) T^-1
+            from scipy.linalg import expm, matrix_balance  # not at import (see hinf_riccati)
+
             bal, (sc, _) = matrix_balance(aug, permute=False, separate=True)
             E = sc[:, None] * expm(bal) / sc[None, :]
             self._disc = (E[:d, :d].copy(), E[:d, d:].copy())
@@ -381,6 +382,8 @@ def run_network(
     oa, da = dict(observer_attacks or {}), dict(detector_attacks or {})
     nodes = [cls(problem, design, node=i, dt=dt, observer_attack=oa.get(i),
                  detector_attack=da.get(i) if controlled else None, gain_rtol=gain_rtol) for i in range(N)]
+    from scipy.linalg import expm
+
     Ad = expm(problem.A * dt)
     x = np.zeros(n) if x0 is None else np.asarray(x0, float).reshape(n)
     nf = problem.F[0].shape[1]

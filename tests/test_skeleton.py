@@ -31,3 +31,10 @@ def test_skeleton_runs_with_an_omniscient_adversary() -> None:
     exp, _ = load_experiment(ROOT / "scenarios" / "mitra_cells.toml", ("run.rounds=10", "expect=[]"), None)
     res = run_skeleton(sizes_for(exp), rounds=30, timeout=50.0)
     assert res["rounds"] == 30 and res["rounds_per_s"] > 0
+
+
+@pytest.mark.multiprocess
+def test_minimal_skeleton_runs_the_team_without_plant_messages_or_monitor() -> None:
+    exp, _ = load_experiment(ROOT / "scenarios" / "lee_kim_shim.toml", ("run.duration=1", "expect=[]"), None)
+    res = run_skeleton(sizes_for(exp), rounds=40, timeout=50.0, minimal=True)
+    assert res["rounds"] == 40 and res["rounds_per_s"] > 0

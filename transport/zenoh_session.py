@@ -56,6 +56,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 LOOPBACK = "127.0.0.1"
+SMALL_BATCH = 16384  # bytes: a link's batch and receive buffer with small_links
 MODES = frozenset({"peer", "client", "router"})
 _ENDPOINT_RE = re.compile(r"(tcp|udp|tls|quic|ws|unixsock-stream)/[^\s\"'\\]+\Z")
 
@@ -125,6 +126,11 @@ class SessionOptions:
     retry_ms : int, optional
         First retry period of a ``connect`` endpoint that is not up yet (Zenoh's default
         when None: 1 s, backing off to 4 s); the period then grows by half up to 1 s.
+    small_links : bool
+        Small per-link buffers for many links of small messages: one transmission queue
+        per link instead of one per priority (QoS off, negotiated per link), batches of
+        :data:`SMALL_BATCH` bytes (larger messages are fragmented) and no shared-memory
+        pool (Zenoh's 16 MB pool for messages over 3 kB).
     """
 
     mode: str = "peer"
@@ -134,6 +140,7 @@ class SessionOptions:
     tls: Any = None
     gossip: bool = True
     retry_ms: int | None = None
+    small_links: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -187,6 +194,7 @@ class SessionOptions:
             tls=self.tls,
             gossip=self.gossip,
             retry_ms=self.retry_ms,
+            small_links=self.small_links,
         )
 
 
@@ -211,12 +219,14 @@ def make_config(
     tls: Any = None,
     gossip: bool = True,
     retry_ms: int | None = None,
+    small_links: bool = False,
 ) -> zenoh.Config:
     """Build a ``zenoh.Config`` with ``zenoh.Config()`` + ``insert_json5``.
 
     Sets ``mode``, ``listen/endpoints``, ``connect/endpoints`` and
     ``scouting/multicast/enabled`` (the keys of Zenoh's ``DEFAULT_CONFIG.json5``),
-    ``scouting/gossip/enabled`` when ``gossip`` is off, ``connect/retry`` with ``retry_ms``, and
+    ``scouting/gossip/enabled`` when ``gossip`` is off, ``connect/retry`` with ``retry_ms``,
+    the link buffers of ``small_links``, and
     with ``tls`` (a :class:`transport.secure.TlsFiles`) the ``transport/link/tls`` keys of
     mutual TLS (:func:`transport.secure.tls_settings`); everything else keeps Zenoh's defaults. Values are written with ``json.dumps`` (JSON
     is JSON5), so no endpoint string can inject configuration.
@@ -236,6 +246,11 @@ def make_config(
         if retry_ms is not None:
             conf.insert_json5("connect/retry", json.dumps({"period_init_ms": int(retry_ms), "period_max_ms": 1000,
                                                            "period_increase_factor": 1.5}))
+        if small_links:
+            conf.insert_json5("transport/unicast/qos/enabled", "false")
+            conf.insert_json5("transport/link/tx/batch_size", json.dumps(SMALL_BATCH))
+            conf.insert_json5("transport/link/rx/buffer_size", json.dumps(SMALL_BATCH))
+            conf.insert_json5("transport/shared_memory/enabled", "false")
         if tls is not None:
             from transport.secure import tls_settings
 

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import os
+import platform
+import statistics
 import sys
+import tempfile
 from pathlib import Path
 
 import click
@@ -30,12 +33,8 @@ def bench_simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None,
     With --rerun-overhead the runs alternate with and without the dashboard (writing a
     temporary .rrd) and the relative cost of the logging in the rounds is printed.
     """
-    import platform
-    import statistics
-    import tempfile
-
     from ..console import out as console
-    
+
     def once(with_rerun: bool) -> float:
         exp, _ = load_experiment(scenario, overrides, seed)  # fresh state every run
         if not with_rerun:
@@ -74,47 +73,91 @@ def bench_simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None,
 @scenario_options
 @click.option("--deadline", type=click.FloatRange(min=0.001), default=2.0, show_default=True, help="Lockstep deadline.")
 @click.option("--skeleton/--no-skeleton", default=True, show_default=True,
-              help="Also time the bare Zenoh lockstep skeleton (same processes and message sizes, no estimation).")
+              help="Also time the bare Zenoh lockstep skeletons (minimal, and the runtime's full pattern).")
+@click.option("--agents-per-process", type=click.IntRange(min=1), default=1, show_default=True, metavar="N",
+              help="Host N agents in each agent process (as rse run --agents-per-process).")
+@click.option("--startup-timeout", type=click.FloatRange(min=0.1), default=60.0, show_default=True,
+              help="Seconds to wait for the team to assemble.")
 @handle_errors
-def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, deadline: float, skeleton: bool) -> None:
-    """Lockstep rounds/s of `rse run` on SCENARIO, next to the bare Zenoh skeleton's, and peak RSS per agent."""
-    import os
-    import platform
-    import statistics
-    import tempfile
-
+def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, deadline: float, skeleton: bool,
+              agents_per_process: int, startup_timeout: float) -> None:
+    """Lockstep rounds/s of `rse run` on SCENARIO next to the bare Zenoh skeletons', the
+    start-up time (this command to round 0), and peak RSS and USS per process."""
     from ..console import out as console
-    from ..net.launcher import launch
+    from ..net.launcher import launch, prestart
     from ..net.protocol import RunConfig
 
+    t_cmd = _command_started()
+    prestart()
     exp, frozen = load_experiment(scenario, overrides, seed)
     with tempfile.TemporaryDirectory(prefix="rse-bench-") as tmp:
-        res = launch(scenario, overrides, seed, Path(tmp) / "run", RunConfig(deadline=deadline), progress=False,
-                     exp=exp, frozen=frozen, say=lambda m: None)
+        res = launch(scenario, overrides, seed, Path(tmp) / "run",
+                     RunConfig(deadline=deadline, startup_timeout=startup_timeout), progress=False,
+                     exp=exp, frozen=frozen, say=lambda m: None, agents_per_process=agents_per_process)
     if res.status != 0 or res.summary is None:
         raise RSEError("; ".join(res.failures) or "the benchmark run failed")
     perf = res.summary["performance"]
-    rss = [rec.get("maxrss_mb", float("nan")) for who, rec in res.summary["processes"].items() if who.startswith("agent")]
+    procs = res.summary["processes"]
     rate = perf["rounds_per_s"]
+    n_proc = -(-exp.N // agents_per_process) + 2
     console.print(f"scenario {exp.scenario.run.name}: {exp.N} agents, {perf['rounds']} rounds, n = {exp.n}, "
-                  f"{exp.N + 2} processes")
+                  f"{n_proc} processes" + (f" ({agents_per_process} agents per process)" if agents_per_process > 1 else ""))
     console.print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-                  f"Python {platform.python_version()}, {platform.system()} {platform.release()}")
-    line = f"rse run lockstep:      {rate:10,.0f} rounds/s  ({rate * exp.N:,.0f} agent-rounds/s)"
-    console.print(line)
+                  f"Python {platform.python_version()}, {platform.system()} {platform.release()}, "
+                  f"load average {os.getloadavg()[0]:.1f}")
+    if perf.get("round0_at"):
+        console.print(f"start-up, this command to round 0: {perf['round0_at'] - t_cmd:6.2f} s  "
+                      f"(targets: <= 4 s for mitra_cells.toml, 18 processes; <= 2 s for lee_kim_shim.toml, 7)")
+    console.print(f"rse run lockstep:         {rate:8,.1f} rounds/s  ({rate * exp.N:,.0f} agent-rounds/s)")
     if skeleton:
-        root = str(Path(__file__).resolve().parents[2])  # benchmarks/ lives next to agents/
-        if root not in sys.path:
-            sys.path.insert(0, root)
-        try:
-            from benchmarks.zenoh_skeleton import run_skeleton, sizes_for
-        except ImportError:
-            raise RSEError("the skeleton benchmark (benchmarks/zenoh_skeleton.py) is not available in this "
-                           "installation; run from a source checkout or use --no-skeleton") from None
+        run_skeleton, sizes_for = _skeleton()
+        sizes = sizes_for(exp)
+        mini = run_skeleton(sizes, rounds=perf["rounds"], minimal=True)["rounds_per_s"]
+        full = run_skeleton(sizes, rounds=perf["rounds"])["rounds_per_s"]
+        console.print(f"minimal Zenoh skeleton:   {mini:8,.1f} rounds/s  (a clock tick, one estimate and one done "
+                      f"per agent and round)")
+        console.print(f"full-pattern skeleton:    {full:8,.1f} rounds/s  (the runtime's processes and messages)")
+        console.print(f"runtime / minimal:        {rate / mini:8.0%}  (target >= 75%); runtime / full pattern "
+                      f"{rate / full:.0%}")
+    console.print(_memory_line(procs, agents_per_process))
 
-        sk = run_skeleton(sizes_for(exp), rounds=perf["rounds"])
-        console.print(f"bare Zenoh skeleton:   {sk['rounds_per_s']:10,.0f} rounds/s  (same processes and message sizes)")
-        console.print(f"runtime / skeleton:    {rate / sk['rounds_per_s']:10.0%}  (target >= 50%)")
-    console.print(f"peak RSS per agent process: max {max(rss):.0f} MB, median {statistics.median(rss):.0f} MB "
-                  f"(target <= 150 MB); plant {res.summary['processes'].get('plant', {}).get('maxrss_mb', float('nan')):.0f} MB, "
-                  f"monitor {res.summary['processes']['monitor']['maxrss_mb']:.0f} MB")
+
+def _command_started() -> float:
+    """Wall-clock time this process started (the command), else now."""
+    import time
+
+    try:
+        import psutil
+
+        return float(psutil.Process().create_time())
+    except Exception:  # pragma: no cover
+        return time.time()
+
+
+def _skeleton():
+    root = str(Path(__file__).resolve().parents[2])  # benchmarks/ lives next to agents/
+    if root not in sys.path:
+        sys.path.insert(0, root)
+    try:
+        from benchmarks.zenoh_skeleton import run_skeleton, sizes_for
+    except ImportError:
+        raise RSEError("the skeleton benchmark (benchmarks/zenoh_skeleton.py) is not available in this "
+                       "installation; run from a source checkout or use --no-skeleton") from None
+    return run_skeleton, sizes_for
+
+
+def _memory_line(procs: dict, per_process: int = 1) -> str:
+    """Peak RSS and USS (at the end of the run) of the agent, plant and monitor processes
+    (with several agents per process, each agent reports its process's figures)."""
+    def fig(recs: list[dict], key: str) -> str:
+        vals = [r[key] for r in recs if isinstance(r.get(key), (int, float))]
+        if not vals:
+            return "n/a"
+        return f"{max(vals):.0f}" if len(vals) == 1 else f"max {max(vals):.0f}, median {statistics.median(vals):.0f}"
+
+    agents = [r for who, r in procs.items() if who.startswith("agent")]
+    plant, monitor = [procs.get("plant", {})], [procs.get("monitor", {})]
+    what = "agent processes" if per_process == 1 else f"agent processes ({per_process} agents each)"
+    return (f"{what}: peak RSS {fig(agents, 'maxrss_mb')} MB, USS {fig(agents, 'uss_mb')} MB (target RSS <= 60 MB); "
+            f"plant: RSS {fig(plant, 'maxrss_mb')} MB, USS {fig(plant, 'uss_mb')} MB (<= 60); "
+            f"monitor: RSS {fig(monitor, 'maxrss_mb')} MB, USS {fig(monitor, 'uss_mb')} MB (<= 120)")

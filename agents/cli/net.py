@@ -88,13 +88,15 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
               help="Mutual TLS and the router's access control, certificates from `rse certs DIR` (implies --router "
                    "unless --connect names a secure router).")
 @click.option("--run-id", default=None, help="Run id in every key expression (default: NAME-RANDOM).")
+@click.option("--agents-per-process", type=click.IntRange(min=1), default=1, show_default=True, metavar="N",
+              help="Host N agents in each agent process (one Zenoh session, one task per agent): large teams.")
 @click.option("--save-estimates", is_flag=True, help="Also write estimates.npy and truth.npy (every agent's estimate per round).")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
 @rerun_options
 @handle_errors
 def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, mode: str, rate: float | None,
         deadline: float, startup_timeout: float, warmup: float, connect: tuple[str, ...], with_router: bool,
-        secure: Path | None, run_id: str | None, save_estimates: bool, progress: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
+        secure: Path | None, run_id: str | None, agents_per_process: int, save_estimates: bool, progress: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
         web_port: int | None, grpc_port: int | None) -> None:
     """Run SCENARIO as a team of processes over Zenoh: plant, monitor, one process per agent.
 
@@ -119,6 +121,9 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
             validate_run_id(run_id)
         except ValueError as exc:
             raise ScenarioError(f"--run-id: {exc}") from None
+    from ..net.launcher import prestart
+
+    prestart()  # the children's fork server starts while the experiment is built
     exp, frozen = load_experiment(scenario, overrides, seed)
     run_dir = out or default_run_dir(exp.scenario.run.name)
     dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
@@ -148,7 +153,7 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
 
     res = launch(scenario, overrides, seed, run_dir, cfg, connect=eps, progress=progress, run_id=run_id, exp=exp,
                  frozen=frozen, dashboard=dopts, show_urls=show_urls, while_serving=while_serving, router=with_router,
-                 secure=secure)
+                 secure=secure, agents_per_process=agents_per_process)
     if res.status == EXIT_INTERRUPTED:
         raise KeyboardInterrupt
     if res.status != 0:
@@ -227,6 +232,8 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
         from transport.secure import identity_for, validate_identity
 
         try:
+            if extra.get("agent_ids"):
+                raise ScenarioError("--secure gives each agent its own identity: run one agent per process")
             me = validate_identity(identity) if identity else identity_for(role, extra.get("agent_id"))
         except ValueError as exc:
             raise ScenarioError(f"--identity: {exc}") from None
@@ -292,31 +299,63 @@ def plant(**kw: Any) -> None:
 
 @click.command()
 @_role_options
-@click.option("--id", "agent_id", type=int, required=True, help="The agent's id (1-based, as in the scenario).")
+@click.option("--id", "agent_spec", required=True, metavar="I[,J,...|I-J]",
+              help="The agent's id (1-based, as in the scenario), or several (1,2,3 or 1-8): one process, one Zenoh "
+                   "session, one task per agent.")
 @handle_errors
-def agent(agent_id: int, **kw: Any) -> None:
-    """Run agent --id I of SCENARIO in this process; joins (or rejoins) a running team.
+def agent(agent_spec: str, **kw: Any) -> None:
+    """Run agent --id I of SCENARIO in this process (or several: --id 1-8); joins (or
+    rejoins) a running team.
 
-    Against a team started by `rse run`: `rse agent --id 3 --team RUN_DIR/team.json`.
+    Against a team started by `rse run`: `rse agent --id 3 --team RUN_DIR/team.json`
+    (reads the agent's slice RUN_DIR/team/agent-3.pkl: no scenario file, no design).
     """
+    from ..net.child import group_label
+
+    ids = parse_ids(agent_spec)
     team = kw.get("team")
-    cached = None
+    cached: list[bytes] = []
     if team is not None and not kw.get("overrides") and kw.get("seed") is None and kw.get("scenario") is None:
-        # this agent's slice of the launcher's built experiment: no scenario, no design, fast rejoin
-        path = (team if team.is_dir() else team.parent) / "team" / f"agent-{agent_id}.pkl"
-        if path.is_file():
-            cached = path.read_bytes()
-    spec = _role_spec("agent", f"agent {agent_id}", agent_id=agent_id, _validate=cached is None, **kw)
-    if cached is not None:
-        spec.node = cached
-    else:
-        from ..net.slices import agent_slice, dumps_slice
+        # the agents' slices of the launcher's built experiment: no scenario, no design, fast rejoin
+        paths = [(team if team.is_dir() else team.parent) / "team" / f"agent-{a}.pkl" for a in ids]
+        if all(p.is_file() for p in paths):
+            cached = [p.read_bytes() for p in paths]
+    label = f"agent {ids[0]}" if len(ids) == 1 else group_label(ids)
+    extra: dict[str, Any] = {"agent_id": ids[0]} if len(ids) == 1 else {"agent_ids": tuple(ids)}
+    spec = _role_spec("agent", label, _validate=not cached, **extra, **kw)
+    if not cached:
+        from ..net.slices import agent_slices, dumps_slice
+        from ..simulate import make_channel, make_nodes
 
         exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
-        if agent_id not in exp.agent_ids:
-            raise ScenarioError(f"--id {agent_id}: no such agent; agents are {', '.join(map(str, exp.agent_ids))}")
-        spec.node = dumps_slice(agent_slice(exp, agent_id))  # built here once
+        missing = [a for a in ids if a not in exp.agent_ids]
+        if missing:
+            raise ScenarioError(f"--id {', '.join(map(str, missing))}: no such agent; agents are "
+                                f"{', '.join(map(str, exp.agent_ids))}")
+        by_id = {s.agent_id: s for s in agent_slices(exp, make_nodes(exp, make_channel(exp)))}  # built here once
+        cached = [dumps_slice(by_id[a]) for a in ids]
+    if len(ids) == 1:
+        spec.node = cached[0]
+    else:
+        spec.nodes = tuple(cached)
     _run_single(spec)
+
+
+def parse_ids(text: str) -> list[int]:
+    """``3``, ``1,2,3``, ``1-8`` or ``1-4,9``: agent ids, in order, without repeats."""
+    ids: list[int] = []
+    try:
+        for part in str(text).split(","):
+            a, sep, b = part.strip().partition("-")
+            lo, hi = int(a), int(b) if sep else int(a)
+            if hi < lo:
+                raise ValueError
+            ids += [i for i in range(lo, hi + 1) if i not in ids]
+    except ValueError:
+        raise ScenarioError(f"--id {text!r}: expected an agent id, a list (1,2,3) or a range (1-8)") from None
+    if not ids or any(i < 0 for i in ids):
+        raise ScenarioError(f"--id {text!r}: expected agent ids >= 0")
+    return ids
 
 
 @click.command()

@@ -52,10 +52,26 @@ class ChildSpec:
     # channel's seeds), pickled, or its path: an agent process reads this and no experiment
     node: bytes | str | None = None
     dashboard: Any = None  # the monitor's agents.dashboard.DashboardOptions (None: no Rerun output)
+    # several agents in this process (one session, one asyncio task and node each):
+    # their ids and slices (as agent_id and node for one agent)
+    agent_ids: tuple[int, ...] = ()
+    nodes: tuple[bytes | str, ...] = ()
 
     @property
     def label(self) -> str:
+        if self.role == "agent" and self.agent_ids:
+            return group_label(self.agent_ids)
         return f"agent {self.agent_id}" if self.role == "agent" else self.role
+
+
+def group_label(ids: tuple[int, ...] | list[int]) -> str:
+    """``agents 1-8`` (a run of ids) or ``agents 1,3,5``: the name of a process hosting several agents."""
+    ids = sorted(ids)
+    if len(ids) == 1:
+        return f"agent {ids[0]}"
+    if ids == list(range(ids[0], ids[-1] + 1)):
+        return f"agents {ids[0]}-{ids[-1]}"
+    return "agents " + ",".join(map(str, ids))
 
 
 
@@ -114,6 +130,8 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
         if spec.role == "agent":
             from .agent import run_agent_slice
 
+            if isinstance(exp, list):  # several agents: one task each over this one session
+                return await asyncio.gather(*(run_agent_slice(part, bus, keys, spec.cfg) for part in exp))
             return await run_agent_slice(exp, bus, keys, spec.cfg)
         conn = spec.conn
 
@@ -205,8 +223,28 @@ def run_role(spec: ChildSpec) -> int:
 
 
 def _agent_slice(spec: ChildSpec) -> Any:
+    """The slice of the agent of ``spec`` (a list with several agents)."""
     from .slices import agent_slice, read_slice
 
+    if spec.agent_ids:
+        if len(spec.nodes) == len(spec.agent_ids):
+            parts = [read_slice(n) for n in spec.nodes]
+        else:
+            from agents.api import load_experiment
+            from agents.simulate import make_channel, make_nodes
+
+            from .slices import agent_slices
+
+            exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
+            missing = sorted(set(spec.agent_ids) - set(exp.agent_ids))
+            if missing:
+                raise ScenarioError(f"no agent {', '.join(map(str, missing))} in this scenario; "
+                                    f"agents are {', '.join(map(str, exp.agent_ids))}")
+            by_id = {s.agent_id: s for s in agent_slices(exp, make_nodes(exp, make_channel(exp)))}
+            parts = [by_id[a] for a in spec.agent_ids]
+        if [p.agent_id for p in parts] != list(spec.agent_ids):
+            raise ScenarioError(f"the slices of agents {[p.agent_id for p in parts]} given to agents {list(spec.agent_ids)}")
+        return parts
     if spec.node is not None:
         part = read_slice(spec.node)
         if spec.agent_id is not None and part.agent_id != spec.agent_id:

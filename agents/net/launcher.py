@@ -49,7 +49,7 @@ from typing import Any
 
 from estimation.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError
 
-from .child import ChildSpec, child_entry
+from .child import ChildSpec, child_entry, group_label
 from .protocol import RunConfig
 
 log = logging.getLogger("rse.net")
@@ -114,7 +114,10 @@ def session_for(team: dict[str, Any], me: str, *, connect: tuple[str, ...] = (),
         return SessionOptions.client(connect or tuple(team.get("connect", ())), tls=tls)
     eps = team["endpoints"]
     listen = eps.get(me, tcp_endpoint(0))
-    return SessionOptions(mode="peer", listen=(listen,), connect=tuple(v for k, v in eps.items() if k != me))
+    # the team's peers do not gossip: connect to every one of them (each link that this
+    # process does not use costs little), retrying soon those that are not listening yet
+    return SessionOptions(mode="peer", listen=(listen,), connect=tuple(v for k, v in eps.items() if k != me),
+                          retry_ms=PEER_RETRY_MS, small_links=True)
 
 
 @dataclass
@@ -127,25 +130,75 @@ class LaunchResult:
     leaves: list[str]
 
 
+#: what the fork server imports once for every child it forks (an agent needs nothing else
+#: but its estimator's module); the plant and monitor import the rest of theirs after the fork
+PRELOAD = ["numpy", "msgpack", "zenoh", "transport.codec", "transport.keys", "transport.zenoh_bus",
+           "transport.zenoh_session", "transport.channel", "transport.byzantine", "agents.node", "agents.net.child",
+           "agents.net.agent", "agents.net.plant", "agents.net.slices",
+           # the built-in estimators (numpy only at import; an agent unpickles one of them)
+           "estimation.lfre", "estimation.lee_kim_shim", "estimation.ugrinovskii", "estimation.mao_tabuada",
+           "estimation.median_bank", "estimation.distributed_median", "estimation.inverters"]
+
+
+def _child_env() -> None:
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")  # tiny matrices: one BLAS thread per process (inherited by the children)
+
+
+def prestart() -> None:
+    """Start the fork server now (it preloads :data:`PRELOAD` while the caller builds the
+    experiment); :func:`launch` uses it. Does nothing with the ``spawn`` start method."""
+    _child_env()
+    ctx = _context()
+    if ctx.get_start_method() == "forkserver":
+        from multiprocessing import forkserver
+
+        with _bare_main():
+            forkserver.ensure_running()
+
+
+def _context() -> Any:
+    """The start method of the children: a fork server that preloaded :data:`PRELOAD`
+    (each child is a fork of it: no interpreter start-up nor numpy/Zenoh import per child;
+    Zenoh opens its runtime only in the child's session), else ``spawn``."""
+    if os.environ.get("RSE_START_METHOD", "forkserver") == "forkserver" and \
+            "forkserver" in multiprocessing.get_all_start_methods():
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(PRELOAD)
+        return ctx
+    return multiprocessing.get_context("spawn")
+
+
 PEER_RETRY_MS = 50  # a peer retries a connect endpoint that is not listening yet this soon
 
 
-def peer_links(slices: Any) -> dict[str, set[str]]:
+def peer_links(slices: Any, host: dict[int, str] | None = None) -> dict[str, set[str]]:
     """Process name -> the processes it exchanges messages with: the plant and the monitor
     with everyone; an agent with its in- and out-neighbours; an omniscient adversary also
-    with the other in-neighbours of its out-neighbours (whose messages its view reads)."""
-    agents = {f"agent {s.agent_id}" for s in slices}
+    with the other in-neighbours of its out-neighbours (whose messages its view reads).
+    ``host``: agent id -> the name of its process (default ``agent I``)."""
+    host = host or {s.agent_id: f"agent {s.agent_id}" for s in slices}
+    agents = set(host.values())
     links: dict[str, set[str]] = {"plant": {"monitor", *agents}, "monitor": {"plant", *agents}}
     for s in slices:
-        me = f"agent {s.agent_id}"
+        me = host[s.agent_id]
         near = set(s.in_ids) | set(s.out_ids)
         if s.view is not None:
             near |= {j for v in s.view.before.values() for j in v} | set(s.view.needed)
-        links[me] = {"plant", "monitor"} | {f"agent {j}" for j in near if j != s.agent_id}
+        links.setdefault(me, {"plant", "monitor"}).update(host[j] for j in near if host[j] != me)
     for nm, others in list(links.items()):  # symmetric
         for o in others:
             links.setdefault(o, set()).add(nm)
     return links
+
+
+def agent_groups(agent_ids: Any, per_process: int) -> list[tuple[int, ...]]:
+    """The agents of each agent process: ``per_process`` consecutive ids each (the last
+    group may be smaller)."""
+    if per_process < 1:
+        raise ScenarioError(f"agents per process must be >= 1, got {per_process}")
+    ids = list(agent_ids)
+    return [tuple(ids[i:i + per_process]) for i in range(0, len(ids), per_process)]
 
 
 def _distinct_ports(n: int) -> list[int]:
@@ -188,8 +241,12 @@ def launch(
     while_serving: Any = None,
     router: bool = False,
     secure: Path | None = None,
+    agents_per_process: int = 1,
 ) -> LaunchResult:
     """Start and supervise the team; returns when every child has exited.
+
+    agents_per_process : agents hosted by each agent process (one Zenoh session, one
+        asyncio task and node per agent, the same keys and messages); 1: one process each
 
     router : start a Zenoh router child on a free loopback port; every process is its client
     secure : a directory of ``rse certs``: mutual TLS, each process with its own identity,
@@ -211,14 +268,19 @@ def launch(
         exp, frozen = load_experiment(scenario, overrides, seed)
     from agents.simulate import make_channel, make_nodes
 
-    from .slices import agent_slices, write_slices
+    from .slices import agent_slices, plant_slice, write_slices
 
     # the nodes built once, as the simulator does; each agent gets its own slice
     slices = agent_slices(exp, make_nodes(exp, make_channel(exp)))
     run_id = run_id or safe_run_id(exp.scenario.run.name)
     run_dir.mkdir(parents=True, exist_ok=True)
-    names = ["plant", "monitor"] + [f"agent {a}" for a in exp.agent_ids]
+    groups = agent_groups(exp.agent_ids, agents_per_process)
+    group_of = {group_label(g): g for g in groups}
+    host = {a: nm for nm, g in group_of.items() for a in g}
+    names = ["plant", "monitor"] + list(group_of)
     tls: dict[str, Any] = {nm: None for nm in names}
+    if secure is not None and agents_per_process > 1:
+        raise ScenarioError("--secure gives each agent its own identity: it cannot share a process (--agents-per-process)")
     if secure is not None:
         tls = {nm: _tls_files(secure, nm) for nm in ["router", *names] if nm != "router" or not connect}
         router = not connect
@@ -241,9 +303,10 @@ def launch(
         endpoints = {nm: tcp_endpoint(p) for nm, p in zip(names, ports)}
         # each process linked to the ones it talks to (not a full mesh): it connects to
         # those started before it, the later ones connect to it
-        links = peer_links(slices)
+        links = peer_links(slices, host)
         order = {nm: i for i, nm in enumerate(names)}
         sessions = {nm: SessionOptions(mode="peer", listen=(endpoints[nm],), gossip=False, retry_ms=PEER_RETRY_MS,
+                                       small_links=True,
                                        connect=tuple(endpoints[o] for o in names if o in links[nm] and order[o] < order[nm]))
                     for nm in names}
     team = Team(run_id, endpoints, "client" if connect else "peer", tuple(connect), str(scenario), tuple(overrides), seed, cfg,
@@ -253,7 +316,7 @@ def launch(
                           "connect": list(connect), "router": router_ep, "secure": secure is not None})
     write_design(run_dir, exp)
 
-    ctx = multiprocessing.get_context("spawn")
+    ctx = _context()
     recv_conn, send_conn = ctx.Pipe(duplex=False)
     import pickle
 
@@ -263,19 +326,23 @@ def launch(
     cache.mkdir(exist_ok=True)
     (cache / "experiment.pkl").write_bytes(base["experiment"])
     base["experiment"] = str((cache / "experiment.pkl").resolve())
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")  # tiny matrices: one BLAS thread per process (inherited by the children)
+    _child_env()
+    plant_pkl = cache / "plant.pkl"  # the plant's slice: no scenario schema in the plant process
+    plant_pkl.write_bytes(pickle.dumps(plant_slice(exp), protocol=pickle.HIGHEST_PROTOCOL))
     specs = {
-        "plant": ChildSpec(role="plant", session=sessions["plant"], **base),
+        "plant": ChildSpec(role="plant", session=sessions["plant"], **{**base, "experiment": str(plant_pkl.resolve())}),
         "monitor": ChildSpec(role="monitor", session=sessions["monitor"], out_dir=str(run_dir), conn=send_conn,
                              dashboard=dashboard, **base),
     }
     # each agent reads its slice (as does `rse agent --team`, for a fast rejoin), not the experiment
     paths = write_slices(cache, slices)
     agent_base = {k: v for k, v in base.items() if k != "experiment"}
-    for a in exp.agent_ids:
-        specs[f"agent {a}"] = ChildSpec(role="agent", agent_id=a, session=sessions[f"agent {a}"], node=str(paths[a]),
-                                        **agent_base)
+    for nm, g in group_of.items():
+        if len(g) == 1:
+            specs[nm] = ChildSpec(role="agent", agent_id=g[0], session=sessions[nm], node=str(paths[g[0]]), **agent_base)
+        else:
+            specs[nm] = ChildSpec(role="agent", agent_ids=g, nodes=tuple(str(paths[a]) for a in g), session=sessions[nm],
+                                  **agent_base)
     procs: dict[str, Any] = {}
     failures: list[str] = []
     leaves: list[str] = []
@@ -298,7 +365,7 @@ def launch(
             router_proc = _start_router(ctx, router_ep, tls.get("router"), exp.agent_ids, run_id, stopping)
             if router_proc is None:  # interrupted while it started
                 return LaunchResult(EXIT_INTERRUPTED, run_dir, run_id, None, failures, leaves)
-        for name in names:
+        for name in ["monitor", *(nm for nm in names if nm != "monitor")]:  # the slowest to start first
             p = ctx.Process(target=child_entry, args=(specs[name],), name=f"rse-{name.replace(' ', '-')}", daemon=True)
             with _bare_main():
                 p.start()

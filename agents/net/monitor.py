@@ -18,7 +18,8 @@ from transport.codec import MONITOR_ID, PLANT_ID, Message
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import ACK_EVERY, MONITOR_LAG, Rejects, Role, RunConfig, _msg, diagnostics_from_meta, maxrss_mb, who_name
+from .protocol import (ACK_EVERY, MONITOR_LAG, Rejects, Role, RunConfig, _msg, diagnostics_from_meta, maxrss_mb,
+                       uss_mb, who_name)
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -274,7 +275,7 @@ class MonitorProcess(Role):
         regular = np.array([i not in exp.byzantine for i in range(exp.N)])
         links: dict[str, dict[str, int]] = {}
         rejected: dict[str, dict[str, int]] = {}
-        processes: dict[str, Any] = {"monitor": {"maxrss_mb": maxrss_mb()}}
+        processes: dict[str, Any] = {"monitor": {"maxrss_mb": maxrss_mb(), "uss_mb": uss_mb()}}
         Rejects.merge(rejected, self.rejects.as_array())
         perf: dict[str, Any] = {}
         for who, m in sorted(self.stats.items()):
@@ -286,7 +287,7 @@ class MonitorProcess(Role):
                                         "rejected": rej}
             if who == "plant":
                 perf = {"elapsed_s": m.meta.get("elapsed"), "rounds": m.meta.get("rounds"),
-                        "deadline_misses": m.meta.get("missed")}
+                        "deadline_misses": m.meta.get("missed"), "round0_at": m.meta.get("round0_at")}
         if perf.get("elapsed_s"):
             perf["rounds_per_s"] = perf["rounds"] / perf["elapsed_s"]
             perf["agent_rounds_per_s"] = perf["rounds_per_s"] * exp.N

@@ -118,6 +118,7 @@ class PlantProcess(Role):
         empty = np.zeros(0)
         nowait = np.zeros((0, 2))
         t0 = time.monotonic()
+        round0_at = time.time()  # wall clock: start-up figures (command to round 0)
         for k in range(K + 1):
             joined = (self.ready & {a for (r, a) in self.alive if r == "agent"}) - self.members
             if joined:
@@ -161,7 +162,8 @@ class PlantProcess(Role):
         elapsed = time.monotonic() - t0
         # the end: final wait lists (messages stamped K), then stop
         waits = self._wait_lists(self.done.get(K, {})) if lockstep else {}
-        self.send_stats(PLANT_ID, elapsed=elapsed, rounds=K + 1, missed=int(sum(self.missed.values())))
+        self.send_stats(PLANT_ID, elapsed=elapsed, rounds=K + 1, missed=int(sum(self.missed.values())),
+                        round0_at=round0_at)
         for aid in ids:
             bus.publish(loc_keys[aid], _msg("ctl", PLANT_ID, K, {"wait": waits.get(aid, nowait)}, meta={"cmd": "stop"}))
         bus.publish(keys.ctl("stop", PLANT_ID), _msg("ctl", PLANT_ID, K, {}, meta={"cmd": "stop"}))

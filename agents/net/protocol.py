@@ -129,6 +129,21 @@ def maxrss_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def uss_mb() -> float:
+    """Unique set size of this process now (MB): its private pages (``Private_Clean`` +
+    ``Private_Dirty`` of ``/proc/self/smaps_rollup``), what it costs beyond the shared
+    libraries; NaN where that file does not exist."""
+    try:
+        total = 0
+        with open("/proc/self/smaps_rollup") as f:
+            for line in f:
+                if line.startswith(("Private_Clean:", "Private_Dirty:")):
+                    total += int(line.split()[1])
+        return total / 1024.0
+    except (OSError, ValueError):
+        return float("nan")
+
+
 def who_name(sender: int | None) -> str:
     if sender is None or sender == UNKNOWN:
         return "unknown"
@@ -314,5 +329,8 @@ class Role:
     def send_stats(self, sender: int, links: np.ndarray | None = None, **meta: Any) -> None:
         links = np.zeros((0, 6)) if links is None else links
         meta = {"cmd": "stats", "maxrss_mb": maxrss_mb(), "bridge_dropped": int(self.bus.stats.dropped_full), **meta}
+        uss = uss_mb()
+        if math.isfinite(uss):  # not on every system (the codec carries finite numbers only)
+            meta["uss_mb"] = uss
         self.bus.publish(self.keys.ctl("stats", sender),
                          _msg("ctl", sender, 0, {"links": links, "rejected": self.rejects.as_array()}, meta=meta))

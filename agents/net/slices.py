@@ -136,3 +136,52 @@ def read_slice(src: Path | bytes) -> AgentSlice:
     if not isinstance(data, dict) or data.get("format") != FORMAT or not isinstance(data.get("slice"), AgentSlice):
         raise ScenarioError(f"{where}: not an agent slice of this version ({FORMAT})")
     return data["slice"]
+
+
+@dataclass
+class PlantSlice:
+    """What the plant process needs of a built experiment (picklable): the plant's model,
+    input and sensor attacks, who reads which rows when, the team's ids and out-neighbours.
+    Read like the experiment by :class:`~agents.plant.PlantRole` and
+    :class:`~agents.net.plant.PlantProcess`; unpickling it imports no scenario schema."""
+
+    agent_ids: list[int]
+    n: int
+    N: int
+    ny: int
+    dt: float
+    n_rounds: int
+    x0: np.ndarray
+    C: np.ndarray
+    Ad: np.ndarray
+    Bd: np.ndarray
+    input: Any
+    sensor_attacks: list[Any]
+    stepper: Any
+    agent_rows: list[np.ndarray]
+    bank_rows: list[np.ndarray]
+    schedules: list[Any]
+    out_ids: list[list[int]]  # per agent index: its out-neighbours' indices
+
+    @property
+    def static(self) -> bool:
+        return not any(s is not None for s in self.schedules)
+
+    def out_neighbours(self, i: int) -> list[int]:
+        return self.out_ids[i]
+
+    def rows_at(self, i: int, k: int) -> np.ndarray | None:
+        """Rows of the stacked ``y`` agent ``i`` reads in round ``k`` (None: commuting), as
+        :meth:`scenarios.build.Experiment.rows_at`."""
+        sched = self.schedules[i] if self.schedules else None
+        if sched is None:
+            return self.agent_rows[i]
+        loc = sched.location(k)
+        return None if loc is None else self.bank_rows[loc]
+
+
+def plant_slice(exp: Experiment) -> PlantSlice:
+    return PlantSlice(list(exp.agent_ids), exp.n, exp.N, int(sum(len(r) for r in exp.bank_rows)), float(exp.dt),
+                      int(exp.n_rounds), exp.x0, exp.plant.C, exp.Ad, exp.Bd, exp.input, list(exp.sensor_attacks),
+                      exp.stepper, list(exp.agent_rows), list(exp.bank_rows), list(exp.schedules or []),
+                      [exp.out_neighbours(i) for i in range(exp.N)])
