@@ -120,7 +120,7 @@ def run_figures(m: dict[str, Any]) -> list[Figure]:
         ]
     figs += [
         Figure("run", size, "agent_rss_max_mb", "agent peak RSS, max", max(m["rss_mb"]), "MB", False,
-               "target <= 150 MB"),
+               "target <= 60 MB"),
         Figure("run", size, "agent_rss_median_mb", "agent peak RSS, median", statistics.median(m["rss_mb"]), "MB",
                False, f"plant {m['plant_rss_mb']:.0f} MB, monitor {m['monitor_rss_mb']:.0f} MB"
                if m.get("plant_rss_mb") and m.get("monitor_rss_mb") else ""),

@@ -314,17 +314,17 @@ def agent(agent_spec: str, **kw: Any) -> None:
 
     ids = parse_ids(agent_spec)
     team = kw.get("team")
-    cached: list[bytes] = []
+    cached: bytes | None = None
     if team is not None and not kw.get("overrides") and kw.get("seed") is None and kw.get("scenario") is None:
         # the agents' slices of the launcher's built experiment: no scenario, no design, fast rejoin
-        paths = [(team if team.is_dir() else team.parent) / "team" / f"agent-{a}.pkl" for a in ids]
-        if all(p.is_file() for p in paths):
-            cached = [p.read_bytes() for p in paths]
+        from ..net.slices import find_slices
+
+        cached = find_slices((team if team.is_dir() else team.parent) / "team", ids)
     label = f"agent {ids[0]}" if len(ids) == 1 else group_label(ids)
     extra: dict[str, Any] = {"agent_id": ids[0]} if len(ids) == 1 else {"agent_ids": tuple(ids)}
-    spec = _role_spec("agent", label, _validate=not cached, **extra, **kw)
-    if not cached:
-        from ..net.slices import agent_slices, dumps_slice
+    spec = _role_spec("agent", label, _validate=cached is None, **extra, **kw)
+    if cached is None:
+        from ..net.slices import agent_slices, dumps_slices
         from ..simulate import make_channel, make_nodes
 
         exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
@@ -333,11 +333,11 @@ def agent(agent_spec: str, **kw: Any) -> None:
             raise ScenarioError(f"--id {', '.join(map(str, missing))}: no such agent; agents are "
                                 f"{', '.join(map(str, exp.agent_ids))}")
         by_id = {s.agent_id: s for s in agent_slices(exp, make_nodes(exp, make_channel(exp)))}  # built here once
-        cached = [dumps_slice(by_id[a]) for a in ids]
+        cached = dumps_slices([by_id[a] for a in ids])
     if len(ids) == 1:
-        spec.node = cached[0]
+        spec.node = cached
     else:
-        spec.nodes = tuple(cached)
+        spec.nodes = (cached,)
     _run_single(spec)
 
 

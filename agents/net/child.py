@@ -224,11 +224,11 @@ def run_role(spec: ChildSpec) -> int:
 
 def _agent_slice(spec: ChildSpec) -> Any:
     """The slice of the agent of ``spec`` (a list with several agents)."""
-    from .slices import agent_slice, read_slice
+    from .slices import agent_slice, read_slice, read_slices
 
     if spec.agent_ids:
-        if len(spec.nodes) == len(spec.agent_ids):
-            parts = [read_slice(n) for n in spec.nodes]
+        if spec.nodes:
+            parts = [p for n in spec.nodes for p in read_slices(n)]
         else:
             from agents.api import load_experiment
             from agents.simulate import make_channel, make_nodes

@@ -335,13 +335,13 @@ def launch(
                              dashboard=dashboard, **base),
     }
     # each agent reads its slice (as does `rse agent --team`, for a fast rejoin), not the experiment
-    paths = write_slices(cache, slices)
+    paths = write_slices(cache, slices, groups)  # one file per agent process
     agent_base = {k: v for k, v in base.items() if k != "experiment"}
     for nm, g in group_of.items():
         if len(g) == 1:
             specs[nm] = ChildSpec(role="agent", agent_id=g[0], session=sessions[nm], node=str(paths[g[0]]), **agent_base)
         else:
-            specs[nm] = ChildSpec(role="agent", agent_ids=g, nodes=tuple(str(paths[a]) for a in g), session=sessions[nm],
+            specs[nm] = ChildSpec(role="agent", agent_ids=g, nodes=(str(paths[g[0]]),), session=sessions[nm],
                                   **agent_base)
     procs: dict[str, Any] = {}
     failures: list[str] = []

@@ -8,9 +8,11 @@ the :class:`~agents.net.view.ViewTopology` of its receivers. Unpickling a slice 
 numpy, the estimator's module and the round logic; not the scenario schema (pydantic),
 the design stack (cvxpy, networkx, scipy's design routines), Rerun or pyarrow.
 
-A slice is written to ``RUN_DIR/team/agent-I.pkl`` (:func:`write_slices`), so that
-``rse agent --id I --team RUN_DIR/team.json`` (on this host, in a container or on another
-host with a copy of that file) starts the agent without the scenario file or its design.
+A slice is written to ``RUN_DIR/team/agent-I.pkl`` (:func:`write_slices`; with several
+agents per process one file per process, ``agents-A-B.pkl``, whose agents share their
+design), so that ``rse agent --id I --team RUN_DIR/team.json`` (on this host, in a
+container or on another host with a copy of the team directory) starts the agent without
+the scenario file or its design.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from .view import ViewTopology, reads_view, view_topology
 if TYPE_CHECKING:
     from scenarios.build import Experiment
 
-#: a slice file's first bytes (a pickle of a dict with this "format" is refused if it differs)
+#: the "format" of a slice file (a pickled dict; another format is refused)
 FORMAT = "rse-agent-slice/1"
 
 
@@ -103,29 +105,71 @@ def agent_slice(exp: Experiment, agent_id: int, node: Any = None) -> AgentSlice:
     return agent_slices(exp, nodes)[exp.agent_ids.index(agent_id)]
 
 
-def slice_path(team_dir: Path, agent_id: int) -> Path:
-    return Path(team_dir) / f"agent-{agent_id}.pkl"
+def slice_path(team_dir: Path, agent_ids: Sequence[int]) -> Path:
+    """``team_dir/agent-I.pkl`` for one agent, ``team_dir/agents-A-B.pkl`` for a group of
+    consecutive ids (``agents-1,3,5.pkl`` otherwise)."""
+    ids = sorted(agent_ids)
+    if len(ids) == 1:
+        return Path(team_dir) / f"agent-{ids[0]}.pkl"
+    span = f"{ids[0]}-{ids[-1]}" if ids == list(range(ids[0], ids[-1] + 1)) else ",".join(map(str, ids))
+    return Path(team_dir) / f"agents-{span}.pkl"
+
+
+INDEX = "slices.json"  # in the team directory: agent id -> the file holding its slice
+
+
+def dumps_slices(parts: Sequence[AgentSlice]) -> bytes:
+    """The bytes of a slice file (read back with :func:`read_slices`). The agents of one
+    file share what their nodes share (e.g. the design of every agent's estimator): one
+    file per process keeps a large team's files and processes small."""
+    return pickle.dumps({"format": FORMAT, "slices": list(parts)}, protocol=pickle.HIGHEST_PROTOCOL)
 
 
 def dumps_slice(part: AgentSlice) -> bytes:
-    """The bytes of a slice file (read back with :func:`read_slice`)."""
-    return pickle.dumps({"format": FORMAT, "slice": part}, protocol=pickle.HIGHEST_PROTOCOL)
+    return dumps_slices([part])
 
 
-def write_slices(team_dir: Path, slices: Sequence[AgentSlice]) -> dict[int, Path]:
-    """Write each slice to ``team_dir/agent-I.pkl``; returns agent id -> path."""
+def write_slices(team_dir: Path, slices: Sequence[AgentSlice],
+                 groups: Sequence[Sequence[int]] | None = None) -> dict[int, Path]:
+    """Write the slices, one file per group of agents (default: one per agent; see
+    :func:`slice_path`) and the index ``slices.json``; returns agent id -> path."""
+    import json
+
     team_dir = Path(team_dir)
     team_dir.mkdir(parents=True, exist_ok=True)
-    paths = {}
-    for s in slices:
-        p = slice_path(team_dir, s.agent_id)
-        p.write_bytes(dumps_slice(s))
-        paths[s.agent_id] = p.resolve()
+    by_id = {s.agent_id: s for s in slices}
+    groups = groups or [(s.agent_id,) for s in slices]
+    paths: dict[int, Path] = {}
+    for g in groups:
+        p = slice_path(team_dir, g)
+        p.write_bytes(dumps_slices([by_id[a] for a in g]))
+        paths.update({a: p.resolve() for a in g})
+    (team_dir / INDEX).write_text(json.dumps({str(a): p.name for a, p in paths.items()}))
     return paths
 
 
-def read_slice(src: Path | bytes) -> AgentSlice:
-    """A slice written by :func:`write_slices` (a path or its bytes)."""
+def find_slices(team_dir: Path, agent_ids: Sequence[int]) -> bytes | None:
+    """The slices of ``agent_ids`` from a team directory written by :func:`write_slices`,
+    as the bytes of one slice file (None if some agent has none there)."""
+    import json
+
+    team_dir = Path(team_dir)
+    try:
+        index = json.loads((team_dir / INDEX).read_text())
+    except (OSError, ValueError):
+        index = {str(a): slice_path(team_dir, [a]).name for a in agent_ids}
+    names = {index.get(str(a)) for a in agent_ids}
+    if None in names or not all((team_dir / n).is_file() for n in names):
+        return None
+    files = sorted(names)
+    if len(files) == 1 and len(read_slices(team_dir / files[0])) == len(agent_ids):
+        return (team_dir / files[0]).read_bytes()
+    got = {s.agent_id: s for n in files for s in read_slices(team_dir / n)}
+    return dumps_slices([got[a] for a in agent_ids])
+
+
+def read_slices(src: Path | bytes) -> list[AgentSlice]:
+    """The slices of a file written by :func:`write_slices` (a path or its bytes)."""
     where = "an agent slice" if isinstance(src, (bytes, bytearray)) else str(src)
     try:
         data = pickle.loads(src if isinstance(src, (bytes, bytearray)) else Path(src).read_bytes())
@@ -133,9 +177,18 @@ def read_slice(src: Path | bytes) -> AgentSlice:
         raise ScenarioError(f"{where}: no such agent slice (rse run writes RUN_DIR/team/agent-I.pkl)") from None
     except Exception as exc:  # a truncated or foreign file
         raise ScenarioError(f"{where}: cannot read the agent slice: {exc}") from None
-    if not isinstance(data, dict) or data.get("format") != FORMAT or not isinstance(data.get("slice"), AgentSlice):
+    parts = data.get("slices") if isinstance(data, dict) and data.get("format") == FORMAT else None
+    if not isinstance(parts, list) or not parts or not all(isinstance(p, AgentSlice) for p in parts):
         raise ScenarioError(f"{where}: not an agent slice of this version ({FORMAT})")
-    return data["slice"]
+    return parts
+
+
+def read_slice(src: Path | bytes) -> AgentSlice:
+    """The one slice of a file written for one agent."""
+    parts = read_slices(src)
+    if len(parts) != 1:
+        raise ScenarioError(f"{src if isinstance(src, Path) else 'an agent slice'}: {len(parts)} agents, expected one")
+    return parts[0]
 
 
 @dataclass

@@ -11,7 +11,7 @@ import pytest
 from agents.cli.net import parse_ids
 from agents.net.child import group_label
 from agents.net.launcher import agent_groups, peer_links
-from agents.net.slices import agent_slices, read_slice, write_slices
+from agents.net.slices import agent_slices, find_slices, read_slice, read_slices, write_slices
 from estimation.errors import ScenarioError
 from tests.agents.test_run_processes import LKS, MITRA, _cmd, _compare
 
@@ -57,6 +57,14 @@ def test_links_follow_the_graph_and_the_packing(tmp_path):
     back = read_slice(paths[5])
     assert back.agent_id == 5 and back.in_ids == slices[4].in_ids and back.view.needed == slices[4].view.needed
     assert back.view.masks.keys() == slices[4].view.masks.keys()
+    # one file per agent process: its agents share their design (one copy in the file)
+    grouped = write_slices(tmp_path / "g", slices, agent_groups(exp.agent_ids, 8))
+    assert grouped[1].name == "agents-1-8.pkl" and grouped[16].name == "agents-9-16.pkl"
+    assert grouped[1].stat().st_size < 3 * paths[1].stat().st_size
+    assert [p.agent_id for p in read_slices(grouped[9])] == list(range(9, 17))
+    picked = read_slices(find_slices(tmp_path / "g", [3, 12]))
+    assert [p.agent_id for p in picked] == [3, 12]
+    assert find_slices(tmp_path / "g", [99]) is None
     (tmp_path / "bad.pkl").write_bytes(b"not a slice")
     with pytest.raises(ScenarioError, match="bad.pkl"):
         read_slice(tmp_path / "bad.pkl")
