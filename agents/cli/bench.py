@@ -84,7 +84,8 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
     """Lockstep rounds/s of `rse run` on SCENARIO next to the bare Zenoh skeletons', the
     start-up time (this command to round 0), and peak RSS and USS per process."""
     from ..console import out as console
-    from ..net.launcher import launch, prestart
+    from ..net.launcher import launch
+    from ..net.startup import prestart
     from ..net.protocol import RunConfig
 
     t_cmd = _command_started()

@@ -121,7 +121,7 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
             validate_run_id(run_id)
         except ValueError as exc:
             raise ScenarioError(f"--run-id: {exc}") from None
-    from ..net.launcher import prestart
+    from ..net.startup import prestart
 
     prestart()  # the children's fork server starts while the experiment is built
     exp, frozen = load_experiment(scenario, overrides, seed)

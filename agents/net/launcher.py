@@ -36,12 +36,8 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import multiprocessing
-import os
 import signal
-import sys
 import time
-import types
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +47,7 @@ from estimation.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, 
 
 from .child import ChildSpec, child_entry, group_label
 from .protocol import RunConfig
+from .startup import PEER_RETRY_MS, agent_groups, bare_main, child_env, context, peer_links
 
 log = logging.getLogger("rse.net")
 
@@ -128,77 +125,6 @@ class LaunchResult:
     summary: dict[str, Any] | None
     failures: list[str]
     leaves: list[str]
-
-
-#: what the fork server imports once for every child it forks (an agent needs nothing else
-#: but its estimator's module); the plant and monitor import the rest of theirs after the fork
-PRELOAD = ["numpy", "msgpack", "zenoh", "transport.codec", "transport.keys", "transport.zenoh_bus",
-           "transport.zenoh_session", "transport.channel", "transport.byzantine", "agents.node", "agents.net.child",
-           "agents.net.agent", "agents.net.plant", "agents.net.slices",
-           # the built-in estimators (numpy only at import; an agent unpickles one of them)
-           "estimation.lfre", "estimation.lee_kim_shim", "estimation.ugrinovskii", "estimation.mao_tabuada",
-           "estimation.median_bank", "estimation.distributed_median", "estimation.inverters"]
-
-
-def _child_env() -> None:
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")  # tiny matrices: one BLAS thread per process (inherited by the children)
-
-
-def prestart() -> None:
-    """Start the fork server now (it preloads :data:`PRELOAD` while the caller builds the
-    experiment); :func:`launch` uses it. Does nothing with the ``spawn`` start method."""
-    _child_env()
-    ctx = _context()
-    if ctx.get_start_method() == "forkserver":
-        from multiprocessing import forkserver
-
-        with _bare_main():
-            forkserver.ensure_running()
-
-
-def _context() -> Any:
-    """The start method of the children: a fork server that preloaded :data:`PRELOAD`
-    (each child is a fork of it: no interpreter start-up nor numpy/Zenoh import per child;
-    Zenoh opens its runtime only in the child's session), else ``spawn``."""
-    if os.environ.get("RSE_START_METHOD", "forkserver") == "forkserver" and \
-            "forkserver" in multiprocessing.get_all_start_methods():
-        ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(PRELOAD)
-        return ctx
-    return multiprocessing.get_context("spawn")
-
-
-PEER_RETRY_MS = 50  # a peer retries a connect endpoint that is not listening yet this soon
-
-
-def peer_links(slices: Any, host: dict[int, str] | None = None) -> dict[str, set[str]]:
-    """Process name -> the processes it exchanges messages with: the plant and the monitor
-    with everyone; an agent with its in- and out-neighbours; an omniscient adversary also
-    with the other in-neighbours of its out-neighbours (whose messages its view reads).
-    ``host``: agent id -> the name of its process (default ``agent I``)."""
-    host = host or {s.agent_id: f"agent {s.agent_id}" for s in slices}
-    agents = set(host.values())
-    links: dict[str, set[str]] = {"plant": {"monitor", *agents}, "monitor": {"plant", *agents}}
-    for s in slices:
-        me = host[s.agent_id]
-        near = set(s.in_ids) | set(s.out_ids)
-        if s.view is not None:
-            near |= {j for v in s.view.before.values() for j in v} | set(s.view.needed)
-        links.setdefault(me, {"plant", "monitor"}).update(host[j] for j in near if host[j] != me)
-    for nm, others in list(links.items()):  # symmetric
-        for o in others:
-            links.setdefault(o, set()).add(nm)
-    return links
-
-
-def agent_groups(agent_ids: Any, per_process: int) -> list[tuple[int, ...]]:
-    """The agents of each agent process: ``per_process`` consecutive ids each (the last
-    group may be smaller)."""
-    if per_process < 1:
-        raise ScenarioError(f"agents per process must be >= 1, got {per_process}")
-    ids = list(agent_ids)
-    return [tuple(ids[i:i + per_process]) for i in range(0, len(ids), per_process)]
 
 
 def _distinct_ports(n: int) -> list[int]:
@@ -316,7 +242,7 @@ def launch(
                           "connect": list(connect), "router": router_ep, "secure": secure is not None})
     write_design(run_dir, exp)
 
-    ctx = _context()
+    ctx = context()
     recv_conn, send_conn = ctx.Pipe(duplex=False)
     import pickle
 
@@ -326,7 +252,7 @@ def launch(
     cache.mkdir(exist_ok=True)
     (cache / "experiment.pkl").write_bytes(base["experiment"])
     base["experiment"] = str((cache / "experiment.pkl").resolve())
-    _child_env()
+    child_env()
     plant_pkl = cache / "plant.pkl"  # the plant's slice: no scenario schema in the plant process
     plant_pkl.write_bytes(pickle.dumps(plant_slice(exp), protocol=pickle.HIGHEST_PROTOCOL))
     specs = {
@@ -367,7 +293,7 @@ def launch(
                 return LaunchResult(EXIT_INTERRUPTED, run_dir, run_id, None, failures, leaves)
         for name in ["monitor", *(nm for nm in names if nm != "monitor")]:  # the slowest to start first
             p = ctx.Process(target=child_entry, args=(specs[name],), name=f"rse-{name.replace(' ', '-')}", daemon=True)
-            with _bare_main():
+            with bare_main():
                 p.start()
             procs[name] = p
         send_conn.close()  # the monitor holds the writing end now
@@ -403,7 +329,8 @@ def launch(
                         serving = True
                         noted.add("monitor")
                         monitor_done_at = monitor_done_at or time.monotonic()
-                    elif kind == "member" and data["role"] == "agent" and data["round"] > 0:
+                    elif (kind == "member" and data["role"] == "agent" and 0 < data["round"]
+                          and k_now < exp.n_rounds):  # not the processes leaving after the last round
                         say(f"agent {data['id']} {'joined' if data['event'] == 'join' else 'left'} (round {data['round']})")
                     try:
                         ready = recv_conn.poll(0)
@@ -503,7 +430,7 @@ def _start_router(ctx: Any, endpoint: str, tls: Any, agent_ids: Any, run_id: str
     from .router import router_entry
 
     p = ctx.Process(target=router_entry, args=(args, ready), name="rse-router", daemon=True)
-    with _bare_main():
+    with bare_main():
         p.start()
     end = time.monotonic() + ROUTER_START_S
     while not ready.wait(0.05):
@@ -515,20 +442,6 @@ def _start_router(ctx: Any, endpoint: str, tls: Any, agent_ids: Any, run_id: str
                 return None
             raise RSEError(f"the router on {endpoint} did not start: {why}")
     return p
-
-
-@contextlib.contextmanager
-def _bare_main() -> Any:
-    """While a child is spawned, hide the launching program's ``__main__`` (the ``rse``
-    script, a notebook, a test runner): ``spawn`` would import it again in every child
-    (with the CLI's libraries), and a child needs only :func:`child_entry`'s module."""
-    real = sys.modules.get("__main__")
-    sys.modules["__main__"] = types.ModuleType("__main__")
-    try:
-        yield
-    finally:
-        if real is not None:
-            sys.modules["__main__"] = real
 
 
 def _is_main_thread() -> bool:
