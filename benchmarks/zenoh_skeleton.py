@@ -138,7 +138,7 @@ async def _minimal(role: str, idx: int, sizes: Sizes, rounds: int, keys: Any, bu
             sent_ready = True
         try:
             key, p = await asyncio.wait_for(q.get(), 0.1) if not sent_ready else await q.get()
-        except asyncio.TimeoutError:
+        except TimeoutError:
             continue
         if type(p) is bool:
             parts = key.split("/")
@@ -244,7 +244,7 @@ async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: 
                     sent_ready = True
                 try:
                     key, p = await asyncio.wait_for(q.get(), 0.1) if not sent_ready else await q.get()
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     continue
                 if type(p) is bool:
                     parts = key.split("/")

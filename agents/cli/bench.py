@@ -85,8 +85,8 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
     start-up time (this command to round 0), and peak RSS and USS per process."""
     from ..console import out as console
     from ..net.launcher import launch
-    from ..net.startup import prestart
     from ..net.protocol import RunConfig
+    from ..net.startup import prestart
 
     t_cmd = _command_started()
     prestart()

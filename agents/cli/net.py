@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import click
 
 from estimation.errors import ExpectationFailed, RSEError, ScenarioError
 
-from .common import (EXIT_INTERRUPTED, dashboard_options, handle_errors, load_experiment, rerun_options,
-                     scenario_options, secure_files, wait_while_serving)
+from .common import EXIT_INTERRUPTED, dashboard_options, handle_errors, load_experiment, rerun_options, scenario_options, secure_files, wait_while_serving
 
 
 def _run_options(fn: Callable) -> Callable:
@@ -55,7 +55,8 @@ def _endpoints(connect: tuple[str, ...]) -> tuple[str, ...]:
 
 
 def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
-    from ..console import expectations_table, out as console, summary_table
+    from ..console import expectations_table, summary_table
+    from ..console import out as console
     from ..summary import ExpectationResult
 
     if summary is None:
@@ -96,7 +97,8 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
 @handle_errors
 def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, mode: str, rate: float | None,
         deadline: float, startup_timeout: float, warmup: float, connect: tuple[str, ...], with_router: bool,
-        secure: Path | None, run_id: str | None, agents_per_process: int, save_estimates: bool, progress: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
+        secure: Path | None, run_id: str | None, agents_per_process: int, save_estimates: bool, progress: bool,
+        rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
         web_port: int | None, grpc_port: int | None) -> None:
     """Run SCENARIO as a team of processes over Zenoh: plant, monitor, one process per agent.
 

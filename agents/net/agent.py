@@ -8,7 +8,8 @@ import asyncio
 import logging
 import math
 import time
-from typing import TYPE_CHECKING, Any, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -242,7 +243,8 @@ class AgentProcess(Role):
             own, meta = np.zeros_like(own), {"nonfinite": True}
         if self._diagnostics:
             meta.update(diagnostics_meta(node.estimator))
-        bus.publish(self._done_key, _msg("done", aid, k, {"x": own, "to": np.array(to, dtype=float), "stamps": np.array(stamps, dtype=float)}, meta=meta or None))
+        arrays = {"x": own, "to": np.array(to, dtype=float), "stamps": np.array(stamps, dtype=float)}
+        bus.publish(self._done_key, _msg("done", aid, k, arrays, meta=meta or None))
 
     def _step(self) -> None:
         """Run every round that can run now."""
@@ -353,7 +355,7 @@ class AgentProcess(Role):
                         raise TransportError(f"agent {self.id}: the plant left before the end of the run")
                 try:
                     await asyncio.wait_for(self.changed.wait(), timeout)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     pass
             links = np.array([[j, c.sent, c.delivered, c.dropped, c.late, c.rejected] for j, c in self.node.links.items()],
                              dtype=float).reshape(-1, 6)

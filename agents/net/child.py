@@ -230,7 +230,7 @@ def _agent_slice(spec: ChildSpec) -> Any:
         if spec.nodes:
             parts = [p for n in spec.nodes for p in read_slices(n)]
         else:
-            from agents.api import load_experiment
+            from agents.runs import load_experiment
             from agents.simulate import make_channel, make_nodes
 
             from .slices import agent_slices

@@ -49,8 +49,9 @@ import math
 import resource
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -320,7 +321,7 @@ class Role:
                     return False
                 try:
                     await asyncio.wait_for(self.changed.wait(), remaining)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     return pred()
             return True
         finally:

@@ -9,16 +9,16 @@ A process that runs one role imports that role's module, not this one.
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 from transport.keys import Keys
 
 from .agent import AgentProcess, run_agent, run_agent_slice
 from .monitor import MonitorProcess, MonitorResult, run_monitor
 from .plant import PlantProcess, run_plant
-from .protocol import (MODES, Rejects, Role, RunConfig, Wire, _msg, diagnostics_from_meta, diagnostics_meta,
-                       maxrss_mb, who_name)
+from .protocol import MODES, Rejects, Role, RunConfig, Wire, _msg, diagnostics_from_meta, diagnostics_meta, maxrss_mb, who_name
 from .slices import AgentSlice, agent_slices, read_slice, write_slices
 from .view import NetworkView, ViewTopology, reads_view, simulator_order, view_topology
 

@@ -10,8 +10,8 @@ import pytest
 
 from agents.cli.net import parse_ids
 from agents.net.child import group_label
-from agents.net.startup import agent_groups, peer_links
 from agents.net.slices import agent_slices, find_slices, read_slice, read_slices, write_slices
+from agents.net.startup import agent_groups, peer_links
 from estimation.errors import ScenarioError
 from tests.agents.test_run_processes import LKS, MITRA, _cmd, _compare
 
