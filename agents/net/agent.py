@@ -44,6 +44,10 @@ class AgentProcess(Role):
             node_hook(self.node)
         self.in_ids = list(part.in_ids)
         self.out_ids = list(part.out_ids)
+        #: lockstep: this agent's done report carries its broadcast estimate, and those of
+        #: the in-neighbours in part.merged carry theirs (see agents.net.slices.merges)
+        self._merge_in = cfg.mode == "lockstep"
+        self._merge = self._merge_in and part.agent_id in part.merged and node.strategy is None
         self.member = False
         self.meas: dict[int, tuple[np.ndarray | None, np.ndarray, float]] = {}
         self.arrived: dict[int, set[int]] = {}
@@ -124,6 +128,9 @@ class AgentProcess(Role):
         if self.view is not None:
             self._handle_view(key, payload)
             return
+        if "/ctl/done/" in key:
+            self._merged_done(key, payload)
+            return
         got = self.decode(key, payload, self.est_schema)
         if got is None:
             return
@@ -133,6 +140,29 @@ class AgentProcess(Role):
             self.rejects.add(j, "neighbour")
             return
         self._take(j, m.stamp, m.arrays["x"])
+
+    def _merged_done(self, key: str, payload: bytes) -> tuple[int, int, np.ndarray, list[int]] | None:
+        """The done report of an in-neighbour whose report carries its estimate (see
+        :attr:`~agents.net.slices.AgentSlice.merged`): handed to the node as its estimate
+        message when it names this agent among its receivers. Returns ``(sender, stamp, x,
+        receivers)`` of a valid report."""
+        got = self.decode(key, payload, self.wire.done)
+        if got is None:
+            return None
+        p, m = got
+        j = p.sender
+        to, stamps = m.arrays["to"], m.arrays["stamps"]
+        if (j not in self.part.merged or stamps.size != to.size or to.size > self.part.N
+                or not all(float(v).is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
+            self.rejects.add(j, "range")
+            return None
+        receivers = [int(t) for t in to]
+        if self.id in receivers:
+            if j not in self.node.links:
+                self.rejects.add(j, "neighbour")
+            else:
+                self._take(j, int(stamps[receivers.index(self.id)]), m.arrays["x"])
+        return j, m.stamp, m.arrays["x"], receivers
 
     def _take(self, j: int, stamp: int, x: np.ndarray) -> None:
         """Hand a decoded estimate of in-neighbour ``j`` to the node (its channel decides)
@@ -148,6 +178,14 @@ class AgentProcess(Role):
             p = self.keys.parse(key)
         except MessageError:
             self.rejects.add(None, "key")
+            return
+        if p.kind == "ctl" and p.sender in self.part.merged and self._merge_in:
+            got = self._merged_done(key, payload)  # an estimate too: for my inbox and for the view
+            if got is not None:
+                j, stamp, x, receivers = got
+                if receivers and self.view.wants(j, None):
+                    self.view.add(j, None, stamp, x)
+                self.view.add_done(j, stamp, [(r, stamp) for r in receivers])
             return
         if p.kind == "ctl":
             try:
@@ -232,6 +270,11 @@ class AgentProcess(Role):
                                 droppable=drop)
                     to.append(tgt)
                     stamps.append(int(stamp))
+            elif self._merge:  # the done report below carries the estimate (one message, not two)
+                finite = bool(np.all(np.isfinite(msg)))
+                to, stamps = (self.out_ids, [k] * len(self.out_ids)) if finite else ([], [])
+                if not finite:
+                    log.warning("agent %d: round %d message not sent: a non-finite estimate", aid, k)
             else:
                 bus.publish(self._est_key, _msg("est", aid, k, {"x": msg}), droppable=drop)
                 to, stamps = self.out_ids, [k] * len(self.out_ids)
@@ -316,16 +359,19 @@ class AgentProcess(Role):
     async def run(self) -> dict[str, Any]:
         keys, bus, cfg = self.keys, self.bus, self.cfg
         bus.subscribe(self._loc_key, self.queue)
+        merged_ins = [j for j in self.in_ids if j in self.part.merged] if self._merge_in else []
         if self.view is None:
             for j in self.in_ids:
                 bus.subscribe(keys.est(j), self.queue)
             bus.subscribe(keys.est_pattern(to=self.id), self.queue)
+            for j in merged_ins:  # their estimates come in their done reports
+                bus.subscribe(keys.ctl("done", j), self.queue)
         else:  # also the estimates its receivers will use, and the reports it waits for
             for j in sorted(set(self.in_ids) | set(self.view.needed)):
                 bus.subscribe(keys.est(j), self.queue)
             for j in sorted({self.id} | self.view.out_set):
                 bus.subscribe(keys.est_pattern(to=j), self.queue)
-            for s in self.view.needed:
+            for s in sorted(set(self.view.needed) | set(merged_ins)):
                 bus.subscribe(keys.ctl("done", s), self.queue)
         bus.watch(keys.alive_pattern(), self.queue)
         bus.announce(keys.alive("agent", self.id))

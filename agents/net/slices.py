@@ -60,6 +60,16 @@ class AgentSlice:
     out_ids: tuple[int, ...]
     node: Any
     view: ViewTopology | None = None
+    #: agents (this one, its in-neighbours, its view's) whose lockstep done report carries
+    #: their broadcast estimate: honest agents whose payload is their estimate publish it
+    #: once, in the done report, not also on their estimate key
+    merged: frozenset[int] = frozenset()
+
+
+def merges(node: Any) -> bool:
+    """Whether an agent's lockstep done report carries its broadcast estimate (an honest
+    agent whose payload is its estimate: the one message is both)."""
+    return node.strategy is None and bool(getattr(node, "payload_is_estimate", False))
 
 
 def payload_shape(estimator: Any, n: int) -> tuple[int, ...]:
@@ -82,14 +92,16 @@ def agent_slices(exp: Experiment, nodes: Sequence[Any] | None = None) -> list[Ag
     ny = int(sum(len(r) for r in exp.bank_rows))
     by_id = {nd.id: nd for nd in nodes}
     shape = payload_shape(nodes[0].estimator, exp.n) if nodes else (exp.n,)
+    merged = {nd.id for nd in nodes if merges(nd)}
     out = []
     for i, (aid, node) in enumerate(zip(ids, nodes)):
         view = None
         if node.strategy is not None and reads_view(node.strategy):
             view = view_topology(exp, aid, {j: by_id[j].estimator for j in by_id})
-        out.append(AgentSlice(aid, ids, exp.n, exp.N, ny, float(exp.dt), shape,
-                              tuple(ids[j] for j in exp.in_neighbours(i)), tuple(ids[j] for j in exp.out_neighbours(i)),
-                              node, view))
+        ins = tuple(ids[j] for j in exp.in_neighbours(i))
+        near = {aid, *ins, *(view.needed if view is not None else ())}
+        out.append(AgentSlice(aid, ids, exp.n, exp.N, ny, float(exp.dt), shape, ins,
+                              tuple(ids[j] for j in exp.out_neighbours(i)), node, view, frozenset(near & merged)))
     return out
 
 

@@ -129,3 +129,17 @@ def test_run_config_validation():
         RunConfig(mode="realtime")
     with pytest.raises(ValueError, match="mode"):
         RunConfig(mode="fast")
+
+
+def test_omniscient_adversary_among_agents_whose_done_report_carries_the_estimate():
+    """lee_kim_shim.toml (the payload is the estimate: an honest agent's done report carries
+    it, no separate estimate message) with agent 2 cancelling with the omniscient view: the
+    view reads its receivers' other inputs from those done reports; equal to the simulator."""
+    def tweak(exp):
+        exp.strategies[1] = Strategy(kind="cancellation", start=100, seed=3, agent=2)
+        exp.byzantine.add(1)
+
+    ref, res = _both(SCENARIOS / "lee_kim_shim.toml", LKS, tweak)
+    assert _rel(res.estimates, ref.estimates, ref.truth) <= 1e-12
+    assert res.summary["links"] == ref.links
+    assert res.summary["agents"]["2"]["regular"] is False
