@@ -14,7 +14,9 @@ The round protocol (keys from :class:`transport.keys.Keys`)::
     plant   -> rse/{run}/plant/loc/{i}      "meas"  y_i[k], wait list, member  (agent i)
     agent i -> rse/{run}/agent/{i}/est      "est"   payload stamped k (broadcast)
             or rse/{run}/agent/{i}/est/{j}  "est"   addressed payloads (Byzantine)
-    agent i -> rse/{run}/ctl/done/{i}       "done"  own estimate x_i[k], receivers  (plant, monitor)
+    agent i -> rse/{run}/ctl/done/{i}       "done"  own estimate x_i[k], receivers  (plant, monitor;
+                                            and, in lockstep, i's out-neighbours when i's payload
+                                            is its estimate: then i sends no "est")
     agent i -> rse/{run}/ctl/ready/{i}      joining the team                    (plant)
     monitor -> rse/{run}/ctl/ack/monitor    rounds recorded (flow control)      (plant)
     plant   -> rse/{run}/plant/loc/{i}      "ctl" cmd=stop, wait list           (agent i)
