@@ -136,7 +136,7 @@ def test_omniscient_adversary_among_agents_whose_done_report_carries_the_estimat
     it, no separate estimate message) with agent 2 cancelling with the omniscient view: the
     view reads its receivers' other inputs from those done reports; equal to the simulator."""
     def tweak(exp):
-        exp.strategies[1] = Strategy(kind="cancellation", start=100, seed=3, agent=2)
+        exp.byzantine_specs[1] = ByzantineSpec(kind="cancellation", start=100, seed=3, agent=2)
         exp.byzantine.add(1)
 
     ref, res = _both(SCENARIOS / "lee_kim_shim.toml", LKS, tweak)
