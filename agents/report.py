@@ -265,3 +265,64 @@ def figure_compare(a: RunData, b: RunData, out: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+# --------------------------------------------------------------------------- sweeps and searches
+SWEEP_METRICS = {"worst_final_relative_error_2": "final |e|/|x|", "worst_final_error_2": "final |e|_2"}
+
+
+def is_sweep_dir(path: str | Path) -> bool:
+    """A directory written by ``rse sweep`` (``sweep.json``) or ``rse boundary`` (``boundary.json``)."""
+    p = Path(path)
+    return (p / "sweep.json").is_file() or (p / "boundary.json").is_file()
+
+
+def sweep_table(path: str | Path):
+    """The table of a sweep (or boundary search) directory, one row per grid point: its
+    values, the runs (ok / all), the runs whose ``[expect]`` bounds held, the median and the
+    maximum over seeds of the worst regular agent's final relative and absolute errors."""
+    from rich.table import Table
+
+    p = Path(path)
+    kind = "sweep" if (p / "sweep.json").is_file() else "boundary"
+    meta = json.loads((p / f"{kind}.json").read_text())
+    table_path = p / f"{kind}.parquet"
+    if not table_path.is_file():
+        raise ScenarioError(f"no {table_path.name} yet: the {kind} has not finished (run it again to resume)", source=str(p))
+    rows = pq.read_table(table_path).to_pylist()
+    skip = {"point", "seed", "status", "elapsed_s", "expectations_ok", "step", "search", "above"}
+    keys = [c for c in (rows[0] if rows else {}) if c not in skip and not c.startswith("worst_")]
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(tuple(r.get(k) for k in keys), []).append(r)
+    what = ", ".join(meta.get("grid") or meta.get("vary") or [])
+    t = Table(title=f"{kind} of {meta.get('scenario')} over {what}: {len(rows)} runs, {len(groups)} points",
+              title_justify="left")
+    for c in [*(k.rsplit(".", 1)[-1] for k in keys), "runs ok/all", "expect held",
+              *(f"{label} {q}" for label in SWEEP_METRICS.values() for q in ("median", "max"))]:
+        t.add_column(c, justify="right")
+    for vals, rs in sorted(groups.items(), key=lambda kv: [str(type(v)) + str(v) if not isinstance(v, (int, float))
+                                                           else v for v in kv[0]]):
+        ok = [r for r in rs if r.get("status") == "ok"]
+        cells = []
+        for m in SWEEP_METRICS:
+            v = np.array([r[m] for r in ok if r.get(m) is not None], dtype=float)
+            cells += [_fmt(float(np.median(v))), _fmt(float(np.max(v)))] if len(v) else ["-", "-"]
+        held = sum(1 for r in ok if r.get("expectations_ok"))
+        t.add_row(*(_fmt(v) for v in vals), f"{len(ok)}/{len(rs)}", f"{held}/{len(ok)}", *cells)
+    return t
+
+
+def boundary_lines(path: str | Path) -> list[str]:
+    """The result lines of a boundary search directory (empty for a sweep)."""
+    f = Path(path) / "boundary.json"
+    if not f.is_file():
+        return []
+    meta = json.loads(f.read_text())
+    out = []
+    for r in meta.get("results", []):
+        where = ", ".join(f"{k}={v}" for k, v in r.items()
+                          if k not in {"estimate", "ci_low", "ci_high", "level", "runs", "queries", "inside"})
+        out.append(f"{(where + ': ') if where else ''}boundary {r['estimate']:.4f}, {int(r['level'] * 100)}% interval "
+                   f"[{r['ci_low']:.4f}, {r['ci_high']:.4f}], {r['runs']} runs")
+    return out

@@ -44,13 +44,16 @@ def _override_strings(set: Mapping[str, Any] | Iterable[str] | None) -> list[str
     return [str(s) for s in set]
 
 
-def load(scenario: str | Path, *, set: Mapping[str, Any] | Iterable[str] | None = None, seed: int | None = None,
-         check_conditions: bool = True) -> Experiment:
+def load(scenario: str | Path | Mapping[str, Any], *, set: Mapping[str, Any] | Iterable[str] | None = None,
+         seed: int | None = None, check_conditions: bool = True, source: str | None = None) -> Experiment:
     """Load, validate and build a scenario file.
 
     Parameters
     ----------
-    scenario : path of a ``.toml`` scenario file
+    scenario : path of a ``.toml`` scenario file, or the scenario as data (the mapping a
+        TOML file reads to, e.g. ``exp.frozen`` of an earlier load: what a sweep sends to
+        a worker that does not have the file)
+    source : the name errors and the manifest give a scenario passed as data
     set : overrides of any key, as a mapping ``{"run.dt": 0.01}`` or ``KEY=VALUE`` strings
         (TOML values, as ``rse --set``)
     seed : overrides ``run.seed``
@@ -63,14 +66,22 @@ def load(scenario: str | Path, *, set: Mapping[str, Any] | Iterable[str] | None 
     for it as not evaluated).
     """
     from scenarios.build import build
-    from scenarios.loader import load as load_scenario, nominal_horizon, read_toml
+    from scenarios.loader import load as load_scenario
+    from scenarios.loader import nominal_horizon, read_toml, validate
 
     ov = _override_strings(set) + ([f"run.seed={seed}"] if seed is not None else [])
-    sc, frozen = load_scenario(scenario, ov)
-    exp = build(sc, source=str(scenario), check_conditions=check_conditions)
+    if isinstance(scenario, Mapping):
+        source = source or "<scenario>"
+        sc, frozen = validate(dict(scenario), source=source, overrides=ov)
+    else:
+        source = source or str(scenario)
+        sc, frozen = load_scenario(scenario, ov)
+    exp = build(sc, source=source, check_conditions=check_conditions)
     exp.frozen = frozen
     exp.overrides = tuple(ov)
-    exp.nominal_horizon = nominal_horizon(read_toml(scenario)) if ov else sc.run.n_rounds * sc.run.dt
+    raw = scenario if isinstance(scenario, Mapping) else None
+    exp.nominal_horizon = (nominal_horizon(dict(raw) if raw is not None else read_toml(scenario)) if ov
+                           else sc.run.n_rounds * sc.run.dt)
     return exp
 
 

@@ -72,36 +72,115 @@ def points(grid: list[tuple[str, list[Any]]], seeds: list[int]) -> list[Point]:
     return [Point(tuple(zip(keys, combo)), s) for combo in itertools.product(*(v for _, v in grid)) for s in seeds]
 
 
-def run_point(scenario: str, base_overrides: list[str], point: Point, out: str) -> dict[str, Any]:
-    """Run one point in this (worker) process; write its files; return its table row."""
-    from agents import runs
-    from agents.rundir import write_json
+def run_point(scenario: dict[str, Any], source: str, base_overrides: list[str], point: Point,
+              record: tuple[str, str] | None = None) -> dict[str, Any]:
+    """Run one point in this (worker) process; return ``{"row", "summary", "rrd"}``.
 
-    d = Path(out)
-    d.mkdir(parents=True, exist_ok=True)
+    ``scenario`` is the scenario as data (the worker may not have the file ``source``
+    names); ``record`` = ``(application id, sweep id)`` also builds the run's tagged Rerun
+    recording (:mod:`agents.sweep_record`). Nothing is written here: the caller writes
+    the point's files (:func:`write_point`), so a task that runs twice (its worker died)
+    still leaves one set of files.
+    """
+    from agents import runs
+
     t0 = time.perf_counter()
     row: dict[str, Any] = {"point": point.id, "seed": point.seed, **{k: v for k, v in point.values}}
+    summary = rrd = None
     try:
-        res = runs.simulate(runs.load(scenario, set=base_overrides + point.overrides))
+        exp = runs.load(scenario, set=base_overrides + point.overrides, source=source)
+        res = runs.simulate(exp)
         results, summary = res.expectations(), res.summary()
-        write_json(d / "summary.json", summary)
         w = summary["worst_regular"].get("x", {})
         row.update({f"worst_{k}": (None if v is None else float(v)) for k, v in w.items()})
         row["expectations_ok"] = not any(r.failed for r in results)
         row["status"] = "ok"
+        if record is not None:
+            from .sweep_record import recording_bytes
+
+            rrd = recording_bytes(exp, res.sim, application_id=record[0], recording_id=f"{record[1]}-{point.id}",
+                                  values=point.values, seed=point.seed, point=point.id)
     except RSEError as exc:  # a point whose design fails is a result, not a crash
         row["status"] = f"error: {exc}"
     except FloatingPointError as exc:
         row["status"] = f"error: {exc}"
     row["elapsed_s"] = time.perf_counter() - t0
-    write_json(d / "point.json", row)
-    return row
+    return {"row": row, "summary": summary, "rrd": rrd}
+
+
+def write_point(d: Path, result: dict[str, Any]) -> dict[str, Any]:
+    """Write one finished point's files into ``d`` (``point.json`` last: the point is done
+    once it exists); returns its row. Writing the same result twice leaves the same files."""
+    from agents.rundir import write_json
+
+    d.mkdir(parents=True, exist_ok=True)
+    if result.get("summary") is not None:
+        write_json(d / "summary.json", result["summary"])
+    if result.get("rrd"):
+        (d / "run.rrd").write_bytes(result["rrd"])
+    write_json(d / "point.json", result["row"])
+    return result["row"]
+
+
+def finished_rows(out: Path, pts: list[Point]) -> tuple[list[dict[str, Any]], list[Point]]:
+    """The rows of the points of ``pts`` already done in ``out`` and the points still to run."""
+    rows, todo = [], []
+    for p in pts:
+        f = out / "points" / p.id / "point.json"
+        if f.exists():
+            rows.append(json.loads(f.read_text()))
+        else:
+            todo.append(p)
+    return rows, todo
+
+
+def run_points(scenario: Path, overrides: list[str], pts: list[Point], out: Path, *, jobs: int,
+               cluster: str | None = None, record: bool = True, executor: Any = None,
+               on_row: Callable[[dict[str, Any]], None] | None = None) -> list[dict[str, Any]]:
+    """Run ``pts`` (none of them done) through an executor, writing each point's files in
+    ``out/points/ID`` as it arrives; returns their rows in completion order. ``executor``
+    reuses an open executor (a search that submits batch after batch)."""
+    from scenarios.loader import read_toml
+
+    from .executor import open_executor
+
+    if not pts:
+        return []
+    raw = read_toml(scenario)
+    tag = (f"rse-sweep-{out.resolve().name}", hashlib.sha1(str(out.resolve()).encode()).hexdigest()[:8]) if record else None
+    tasks = [(raw, str(scenario), overrides, p, tag) for p in pts]
+    rows = []
+
+    def consume(ex: Any) -> None:
+        for i, result in ex.map(run_point, tasks):
+            rows.append(write_point(out / "points" / pts[i].id, result))
+            if on_row:
+                on_row(rows[-1])
+
+    if executor is not None:
+        consume(executor)
+    else:
+        with open_executor(jobs, cluster) as ex:
+            consume(ex)
+    return rows
+
+
+def validate_points(scenario: Path, overrides: list[str], pts: list[Point]) -> None:
+    """Build every distinct override combination of ``pts`` once (bad keys and values are
+    errors before any run)."""
+    from scenarios.build import build
+    from scenarios.loader import load
+
+    for combo in dict.fromkeys(p.values for p in pts):
+        sc_p, _ = load(scenario, overrides + Point(combo, 0).overrides)
+        build(sc_p, source=str(scenario), check_conditions=False)
 
 
 def run_sweep(scenario: Path, grid_specs: list[str], *, seeds: int, jobs: int, out: Path,
-              overrides: list[str], progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
-    """Run (or resume) a sweep; returns every point's row."""
-    from scenarios.build import build
+              overrides: list[str], progress: Callable[[int, int], None] | None = None,
+              cluster: str | None = None, record: bool = True) -> list[dict[str, Any]]:
+    """Run (or resume) a sweep; returns every point's row. ``cluster``: the Dask scheduler's
+    address (:func:`agents.executor.open_executor`); ``record``: a tagged ``run.rrd`` per run."""
     from scenarios.loader import load
 
     grid = [parse_grid(g) for g in grid_specs]
@@ -111,11 +190,7 @@ def run_sweep(scenario: Path, grid_specs: list[str], *, seeds: int, jobs: int, o
     base_seed = sc.run.seed
     seed_list = [base_seed + i for i in range(seeds)]
     pts = points(grid, seed_list)
-    # validate every distinct override combination once, before spending time on runs
-    for combo in {p.values for p in pts}:
-        probe = Point(combo, base_seed)
-        sc_p, _ = load(scenario, overrides + probe.overrides)
-        build(sc_p, source=str(scenario), check_conditions=False)
+    validate_points(scenario, overrides, pts)
     out.mkdir(parents=True, exist_ok=True)
     meta = {"scenario": str(scenario), "grid": grid_specs, "seeds": seed_list, "overrides": overrides}
     meta_path = out / "sweep.json"
@@ -125,32 +200,26 @@ def run_sweep(scenario: Path, grid_specs: list[str], *, seeds: int, jobs: int, o
             raise ScenarioError(f"{out} holds a different sweep ({old.get('scenario')}, {old.get('grid')}); use another --out",
                                 source="--out")
     meta_path.write_text(json.dumps(meta, indent=2) + "\n")
-    rows: list[dict[str, Any]] = []
-    todo = []
-    for p in pts:
-        f = out / "points" / p.id / "point.json"
-        if f.exists():
-            rows.append(json.loads(f.read_text()))
-        else:
-            todo.append(p)
-    done = len(rows)
-    if progress:
-        progress(done, len(pts))
-    if todo:
-        from .executor import open_executor
+    rows, todo = finished_rows(out, pts)
 
-        tasks = [(str(scenario), overrides, p, str(out / "points" / p.id)) for p in todo]
-        with open_executor(jobs) as ex:
-            for _, row in ex.map(run_point, tasks):
-                rows.append(row)
-                done += 1
-                if progress:
-                    progress(done, len(pts))
+    def on_row(row: dict[str, Any]) -> None:
+        rows.append(row)
+        if progress:
+            progress(len(rows), len(pts))
+
+    from .executor import open_executor
+
+    with open_executor(jobs, cluster) as ex:  # a cluster that does not answer fails here, before any progress
+        if progress:
+            progress(len(rows), len(pts))
+        run_points(scenario, overrides, todo, out, jobs=jobs, record=record, executor=ex, on_row=on_row)
+    order = {p.id: i for i, p in enumerate(pts)}
+    rows.sort(key=lambda r: order.get(r.get("point"), len(order)))  # grid order, whatever the completion order
     write_table(out, rows, [k for k, _ in grid])
     return rows
 
 
-def write_table(out: Path, rows: list[dict[str, Any]], keys: list[str]) -> None:
+def write_table(out: Path, rows: list[dict[str, Any]], keys: list[str], name: str = "sweep.parquet") -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -159,7 +228,7 @@ def write_table(out: Path, rows: list[dict[str, Any]], keys: list[str]) -> None:
     for c, v in data.items():
         if any(isinstance(x, (list, dict)) for x in v):
             data[c] = [json.dumps(x) for x in v]
-    pq.write_table(pa.table(data), out / "sweep.parquet")
+    pq.write_table(pa.table(data), out / name)
 
 
 def mss_curve(scenario: Path, overrides: list[str], p: np.ndarray) -> tuple[np.ndarray, float] | None:

@@ -123,10 +123,27 @@ def steps(plan: Plan, sections: list[str]) -> list[Step]:
                              lambda procs=procs: run_bench.run_figures(run_bench.measure_run(procs, plan.run_rounds))))
     if "sweep" in sections:
         runs = len(plan.sweep_drop_ps) * plan.sweep_seeds
-        todo.append(Step("sweep", f"sweep: {runs} runs, {plan.sweep_jobs} worker process(es)",
-                         lambda: sweep_bench.sweep_figures(sweep_bench.measure_sweep(
-                             list(plan.sweep_drop_ps), plan.sweep_seeds, plan.sweep_rounds, plan.sweep_jobs))))
+        sweep_pool: dict[str, Any] = {}
+
+        def pool_step() -> list[Figure]:
+            sweep_pool.update(sweep_bench.measure_sweep(list(plan.sweep_drop_ps), plan.sweep_seeds, plan.sweep_rounds,
+                                                        plan.sweep_jobs))
+            return sweep_bench.sweep_figures(sweep_pool)
+
+        todo.append(Step("sweep", f"sweep: {runs} runs, {plan.sweep_jobs} worker process(es)", pool_step))
+        if _have_dask():
+            todo.append(Step("sweep", f"sweep: {runs} runs, Dask LocalCluster of {plan.sweep_jobs} worker(s)",
+                             lambda: sweep_bench.sweep_figures(sweep_bench.measure_sweep(
+                                 list(plan.sweep_drop_ps), plan.sweep_seeds, plan.sweep_rounds, plan.sweep_jobs,
+                                 cluster="local"), sweep_pool or None)))
     return todo
+
+
+def _have_dask() -> bool:
+    """Dask distributed is installed (the ``cluster`` extra): the sweep is also measured on it."""
+    import importlib.util
+
+    return importlib.util.find_spec("distributed") is not None
 
 
 #: the table's order of the sections

@@ -14,6 +14,7 @@ from __future__ import annotations
 import click
 
 from .bench import bench
+from .boundary import boundary
 from .compose import compose
 from .deploy import certs, router
 from .net import agent, monitor, plant, run
@@ -31,7 +32,8 @@ def cli() -> None:
     """Resilient distributed state estimation: simulate, run and check scenarios."""
 
 
-for _command in (simulate, check, run, plant, agent, monitor, router, certs, compose, report, sweep, redteam, bench):
+for _command in (simulate, check, run, plant, agent, monitor, router, certs, compose, report, sweep, boundary, redteam,
+                 bench):
     cli.add_command(_command)
 
 

@@ -22,9 +22,13 @@ def report(run_dir: Path, other: Path | None, png_dir: Path | None) -> None:
     output window, the convergence round, detected attacks and the in-link counters, then
     the scenario's [expect] bounds (ok, FAIL, or not evaluated with the reason). It is
     read from the run directory only, so runs of `rse simulate` and `rse run` report alike.
+
+    RUN_DIR may also be a sweep directory (`rse sweep`) or a boundary search directory
+    (`rse boundary`): then the sweep's table is printed, one row per grid point (runs, the
+    median and maximum over seeds of the worst regular agent's errors).
     """
     from ..console import expectations_table, out
-    from ..report import compare_table, figure_compare, figure_errors, figure_states, load_run, report_table
+    from ..report import boundary_lines, compare_table, figure_compare, figure_errors, figure_states, is_sweep_dir, load_run, report_table, sweep_table
     from ..summary import ExpectationResult
 
     def show(run) -> None:
@@ -33,6 +37,13 @@ def report(run_dir: Path, other: Path | None, png_dir: Path | None) -> None:
         if results:
             out.print(expectations_table(results))
 
+    if is_sweep_dir(run_dir):
+        if other is not None or png_dir is not None:
+            raise click.UsageError("a sweep directory takes no OTHER run and no --png (see sweep.png)")
+        out.print(sweep_table(run_dir))
+        for line in boundary_lines(run_dir):
+            out.print(line)
+        return
     a = load_run(run_dir)
     show(a)
     b = load_run(other) if other is not None else None

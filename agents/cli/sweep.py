@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -21,16 +22,23 @@ from .common import handle_errors
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Sweep directory (default: runs/sweep-NAME). Re-running with the same directory resumes.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE", help="Override a key for every point.")
+@click.option("--cluster", default=None, metavar="tcp://HOST:8786",
+              help="Run on the Dask cluster whose scheduler is at this address (needs the cluster extra); "
+                   "'local': a Dask LocalCluster of --jobs processes. Default: a process pool of --jobs.")
+@click.option("--rrd/--no-rrd", "record", default=True, show_default=True,
+              help="Write each run's Rerun recording (points/ID/run.rrd), tagged with its grid values and seed.")
 @click.option("--png/--no-png", default=True, show_default=True, help="Write sweep.png (needs the plot extra).")
 @handle_errors
 def sweep(scenario: Path, grid: tuple[str, ...], seeds: int, jobs: int, out: Path | None,
-          overrides: tuple[str, ...], png: bool) -> None:
+          overrides: tuple[str, ...], cluster: str | None, record: bool, png: bool) -> None:
     """Run SCENARIO over a grid of overrides and seeds in parallel; resumable.
 
     Writes one row per run to sweep.parquet (grid values, seed, the worst regular agent's
     final and window errors, whether the [expect] bounds held) and sweep.png: the
     mean-square error at the horizon against the first grid key (with Theorem 2's MSS bound
-    when that key is network.channel.drop_p of an lfre scenario).
+    when that key is network.channel.drop_p of an lfre scenario). Each run's Rerun
+    recording, tagged with its grid values and seed, is points/ID/run.rrd: `rerun
+    OUT/points/*/run.rrd` opens them together. `rse report OUT` prints the table.
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -43,14 +51,18 @@ def sweep(scenario: Path, grid: tuple[str, ...], seeds: int, jobs: int, out: Pat
     out = out or Path("runs") / f"sweep-{sc.run.name}"
     bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("runs"),
                    TimeElapsedColumn(), TimeRemainingColumn(), console=err)
-    with bar:
-        task = bar.add_task(f"sweep {sc.run.name}", total=None)
+    with contextlib.ExitStack() as stack:
+        task = None
 
-        def progress(done: int, total: int) -> None:
+        def progress(done: int, total: int) -> None:  # the bar appears once the sweep is valid and connected
+            nonlocal task
+            if task is None:
+                stack.enter_context(bar)
+                task = bar.add_task(f"sweep {sc.run.name}", total=None)
             bar.update(task, completed=done, total=total)
 
         rows = run_sweep(scenario, list(grid), seeds=seeds, jobs=jobs, out=out, overrides=list(overrides),
-                         progress=progress)
+                         progress=progress, cluster=cluster, record=record)
     failed = [r for r in rows if r.get("status") != "ok"]
     console.print(f"{len(rows)} runs in {out} ({len(failed)} failed); table: {out / 'sweep.parquet'}")
     for r in failed[:5]:
