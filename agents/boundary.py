@@ -12,16 +12,25 @@ Simulation Conference 2011:
   ``T`` (``METRIC`` is taken to be below ``T`` at ``LO`` and above at ``HI``; a run that
   fails, or a non-finite metric, counts as above);
 * a posterior density of ``x*`` (uniform prior, ``CELLS`` cells) is queried at its median;
-* at the query ``x`` the seeds ``s_1, s_2, ...`` (the same seeds at every ``x``: common
-  random numbers) run in batches until a one-sided sign test decides whether the median is
-  above or below ``T`` at level ``ALPHA`` (a unanimous batch of 5 already does), or the
-  ``N`` seeds are spent, when the majority (the median over the ``N`` seeds) decides;
+* at the query ``x`` the ``N`` seeds run in batches of 5 (each query starting in the list
+  of seeds where the last one stopped, so every seed is seen) until a sequential test
+  decides on which side of ``T`` the median over the ``N`` seeds lies (the hypergeometric
+  p-value of the least favourable split, at most ``ALPHA``: a unanimous batch of 5 out of
+  20 seeds already decides), or all ``N`` ran, when the median of their metric decides
+  exactly (as a grid's median over the same seeds);
 * the answer updates the density: the side it points to is weighted by ``p_c``, the other
-  by ``1 - p_c``, with ``p_c`` one minus the sign test's p-value (at most ``PC_MAX``; at
-  least 0.55 for a narrow majority of the ``N`` seeds, 0.5 for a tie);
-* the search stops when the central 95% interval of the density is narrower than
-  ``2 * tol``, or after ``max_runs`` runs. The estimate is the posterior median, the
-  interval the central 95% interval (a Bayesian credible interval, as in the papers above).
+  by ``1 - p_c``, with ``p_c`` one minus the test's p-value (at most ``PC_MAX``), or
+  ``PC_EXACT`` when every seed ran;
+* the search stops when the central 95% interval of the density (the search interval, a
+  Bayesian credible interval for the median's crossing) is narrower than ``2 * tol``, or
+  after ``max_runs`` runs. The estimate is the posterior median.
+
+The confidence interval from the seeds is for the population median of the per-seed
+crossing points (where the next seeds would put the boundary): each seed's crossing is
+bracketed by the runs of that seed (below ``T`` at ``x1``, above at ``x2``), and the
+interval is the distribution-free one of order statistics (Conover 1999, sec. 3.2:
+``[x_(6), x_(15)]`` for 20 seeds at 95%), its ends taken from the brackets' outer ends,
+so it is conservative.
 
 With a second ``--vary KEY2=V1,V2,...`` one search runs per value of ``KEY2``, their batches
 submitted together, and the result is a curve ``x*(KEY2)``.
@@ -44,7 +53,8 @@ CELLS = 2000
 ALPHA = 0.05
 BATCH = 5  # 0.5 ** 5 < ALPHA: a unanimous batch decides
 LEVEL = 0.95
-PC_MAX = 0.99  # no answer is taken as certain (a seed's metric need not be monotone in x)
+PC_MAX = 0.99     # an early decision of the sequential test: no more sure than this
+PC_EXACT = 0.999  # every seed ran: exact for this x, short of certain (a seed's metric need not be monotone in x)
 
 METRIC_COLUMNS = ("final_relative_error_2", "window_max_relative_error_2", "final_error_2", "window_max_error_2",
                   "final_error_inf", "window_max_error_inf", "convergence_round")
@@ -77,9 +87,33 @@ def metric_column(metric: str) -> str:
                         "(relative_error_2 means final_relative_error_2)", source="--metric")
 
 
-def binom_tail(k: int, n: int) -> float:
-    """``P(X >= k)`` for ``X ~ Binomial(n, 1/2)``."""
-    return sum(math.comb(n, i) for i in range(k, n + 1)) / 2.0**n
+def majority_p_value(k: int, n: int, seeds: int) -> float:
+    """The p-value of "the majority of ``seeds`` seeds lies on the side of ``k`` of the ``n``
+    sampled so far": ``P(X >= k)`` for ``X`` hypergeometric (``n`` draws from ``seeds``, of
+    which ``seeds // 2`` are on that side: the least favourable population). 0 when
+    ``n == seeds`` and ``k`` is a strict majority: then the answer is exact."""
+    K = seeds // 2
+    total = math.comb(seeds, n)
+    return sum(math.comb(K, i) * math.comb(seeds - K, n - i) for i in range(k, min(K, n) + 1)) / total
+
+
+def median_interval(brackets: list[tuple[float, float]], level: float = LEVEL) -> tuple[float, float]:
+    """Distribution-free interval for the median over the population of seeds of the
+    per-seed crossing point, from each seed's bracket ``(lo, hi)`` (its crossing lies in
+    it): the order statistics ``x_(r)``, ``x_(N + 1 - r)`` with ``r`` the largest rank for
+    which ``P(r <= Binomial(N, 1/2) <= N - r) >= level`` (Conover, Practical
+    Nonparametric Statistics, 3rd ed., sec. 3.2), the lower end from the brackets' lower
+    ends and the upper end from their upper ends."""
+    N = len(brackets)
+    cdf = lambda r: sum(math.comb(N, i) for i in range(r)) / 2.0**N  # P(X < r)  # noqa: E731
+    r = 0
+    while r + 1 <= N // 2 and 1 - 2 * cdf(r + 1) >= level:
+        r += 1
+    if r == 0:
+        return -math.inf, math.inf
+    los = sorted(b[0] for b in brackets)
+    his = sorted(b[1] for b in brackets)
+    return los[r - 1], his[N - r]
 
 
 @dataclass
@@ -90,6 +124,7 @@ class Search:
     lo: float
     hi: float
     seeds: list[int]
+    threshold: float
     fixed: tuple[tuple[str, Any], ...] = ()
     tol: float = 0.0125
     density: np.ndarray = field(default_factory=lambda: np.full(CELLS, 1.0 / CELLS))
@@ -98,6 +133,10 @@ class Search:
     below: int = 0
     runs: int = 0
     queries: list[dict[str, Any]] = field(default_factory=list)
+    observed: list[tuple[float, int, bool]] = field(default_factory=list)  # (x, seed, above) of every run
+    values: list[float] = field(default_factory=list)  # the metric of the current query's runs
+    offset: int = 0  # each query starts where the last one stopped in the list of seeds
+    _batch: list[Point] = field(default_factory=list)
 
     @property
     def edges(self) -> np.ndarray:
@@ -124,37 +163,56 @@ class Search:
         if self.x is None:
             self.x = round(self.quantile(0.5), 6)
             self.above = self.below = 0
+            self.values = []
         n = self.above + self.below
-        seeds = self.seeds[n:n + BATCH]
+        order = self.seeds[self.offset:] + self.seeds[:self.offset]
+        seeds = order[n:n + BATCH]
         values = self.fixed + ((self.key, self.x),)
-        return [Point(values, s) for s in seeds]
+        self._batch = [Point(values, s) for s in seeds]
+        return list(self._batch)
 
-    def observe(self, above: list[bool]) -> None:
-        """The answers of the last batch; updates the density when the query is decided."""
+    def observe(self, values: list[float]) -> None:
+        """The metric of each run of the last batch (``inf`` for a failed run); updates the
+        density when the query is decided."""
+        above = [bool(v > self.threshold) for v in values]
         self.runs += len(above)
+        self.observed += [(float(self.x), p.seed, a) for p, a in zip(self._batch, above)]
+        self.values += list(values)
         self.above += sum(above)
         self.below += len(above) - sum(above)
         n = self.above + self.below
-        k = max(self.above, self.below)
-        p_tail = binom_tail(k, n)
-        if p_tail <= ALPHA:
-            pc = min(PC_MAX, 1 - p_tail)
-        elif n >= len(self.seeds):
-            pc = 0.5 if self.above == self.below else min(PC_MAX, max(0.55, 1 - p_tail))
+        if n >= len(self.seeds):  # every seed ran here: their median decides, exactly
+            pc, is_above = PC_EXACT, bool(np.median(self.values) > self.threshold)
         else:
-            return  # undecided: more seeds at the same x
-        is_above = self.above > self.below
+            p_value = majority_p_value(max(self.above, self.below), n, len(self.seeds))
+            if p_value > ALPHA:
+                return  # undecided: more seeds at the same x
+            pc, is_above = min(PC_MAX, 1 - p_value), self.above > self.below
         left = (self.edges[1:] + self.edges[:-1]) / 2 < self.x
         # above at x: the boundary lies left of x (the metric crosses upwards)
         self.density = self.density * np.where(left == is_above, pc, 1 - pc)
         self.density /= self.density.sum()
         self.queries.append({"x": self.x, "above": self.above, "below": self.below, "p_c": pc})
+        self.offset = (self.offset + n) % len(self.seeds)
         self.x = None
+
+    def brackets(self) -> list[tuple[float, float]]:
+        """Per seed, the interval its own crossing lies in: above the largest ``x`` where it
+        was below ``T``, below the smallest where it was above (the range for a seed not run)."""
+        out = []
+        for seed in self.seeds:
+            xs = [(x, a) for x, s, a in self.observed if s == seed]
+            lo = max([x for x, a in xs if not a], default=self.lo)
+            hi = min([x for x, a in xs if a], default=self.hi)
+            out.append((min(lo, hi), max(lo, hi)))  # min/max: a seed whose metric is not monotone in x
+        return out
 
     def result(self) -> dict[str, Any]:
         lo, hi = self.interval()
+        s_lo, s_hi = median_interval(self.brackets())
         edge = self.tol
-        return {**{k: v for k, v in self.fixed}, "estimate": self.quantile(0.5), "ci_low": lo, "ci_high": hi,
+        return {"at": {k: v for k, v in self.fixed}, "estimate": self.quantile(0.5), "ci_low": s_lo, "ci_high": s_hi,
+                "search_low": lo, "search_high": hi,
                 "level": LEVEL, "runs": self.runs, "queries": len(self.queries),
                 "inside": bool(self.quantile(0.5) > self.lo + edge and self.quantile(0.5) < self.hi - edge)}
 
@@ -188,12 +246,17 @@ def run_boundary(scenario: Path, vary: list[str], *, metric: str, threshold: flo
     sc, _ = load(scenario, overrides)
     seed_list = [sc.run.seed + i for i in range(seeds)]
     fixed_sets = [((curve[0], v),) for v in curve[1]] if curve else [()]
-    searches = [Search(key, lo, hi, seed_list, fixed=f, tol=tol) for f in fixed_sets]
+    searches = [Search(key, lo, hi, seed_list, threshold, fixed=f, tol=tol) for f in fixed_sets]
     validate_points(scenario, overrides, [Point(f + ((key, x),), 0) for f in fixed_sets for x in (lo, hi)])
     out.mkdir(parents=True, exist_ok=True)
-    (out / "boundary.json").write_text(json.dumps({"scenario": str(scenario), "vary": vary, "metric": col,
-                                                   "threshold": threshold, "seeds": seed_list,
-                                                   "overrides": overrides}, indent=2) + "\n")
+    meta = {"scenario": str(scenario), "vary": vary, "metric": col, "threshold": threshold, "seeds": seed_list,
+            "overrides": overrides, "tol": tol, "max_runs": max_runs}
+    if (out / "boundary.json").exists():
+        old = json.loads((out / "boundary.json").read_text())
+        if {k: old.get(k) for k in meta} != meta:
+            raise ScenarioError(f"{out} holds a different search ({old.get('scenario')}, {old.get('vary')}); "
+                                "use another --out", source="--out")
+    (out / "boundary.json").write_text(json.dumps(meta, indent=2) + "\n")
     rows: list[dict[str, Any]] = []
     with open_executor(jobs, cluster) as ex:
         step = 0
@@ -208,21 +271,20 @@ def run_boundary(scenario: Path, vary: list[str], *, metric: str, threshold: flo
             got_rows += run_points(scenario, overrides, todo, out, jobs=jobs, record=record, executor=ex)
             got = {r["point"]: r for r in got_rows}
             for s, batch in batches:
-                answers = []
+                values = []
                 for p in batch:
                     r = dict(got[p.id], step=step, search=searches.index(s))
                     v = r.get(col)
-                    answers.append(r.get("status") != "ok" or v is None or not math.isfinite(v) or v > threshold)
-                    r["above"] = answers[-1]
+                    values.append(math.inf if r.get("status") != "ok" or v is None or not math.isfinite(v) else v)
+                    r["above"] = values[-1] > threshold
                     rows.append(r)
-                s.observe(answers)
+                s.observe(values)
             step += 1
             if progress:
                 progress(len(rows), "; ".join(f"{s.quantile(0.5):.4f} [{s.interval()[0]:.4f}, {s.interval()[1]:.4f}]"
                                               for s in searches))
     results = [s.result() for s in searches]
     write_table(out, rows, [key] + ([curve[0]] if curve else []), name="boundary.parquet")
-    meta = json.loads((out / "boundary.json").read_text())
     meta["results"] = results
     meta["queries"] = [s.queries for s in searches]
     (out / "boundary.json").write_text(json.dumps(meta, indent=2) + "\n")

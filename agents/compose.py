@@ -194,3 +194,25 @@ def render(spec: dict[str, Any], header: Sequence[str] = ()) -> str:
     Dumper.add_representer(Flow, lambda d, s: d.represent_sequence("tag:yaml.org,2002:seq", list(s), flow_style=True))
     body = yaml.dump(spec, Dumper=Dumper, sort_keys=False, default_flow_style=False, width=10_000, allow_unicode=True)
     return "".join(f"# {line}\n".replace("# \n", "#\n") for line in header) + body
+
+
+DASK_PORT = 8786  # the Dask scheduler (rse sweep / rse boundary --cluster tcp://HOST:8786)
+DASK_SCHEDULER = "dask-scheduler"
+
+
+def dask_services(workers: int, *, image: str = DEFAULT_IMAGE) -> dict[str, Any]:
+    """Services of a Dask cluster for ``rse sweep --cluster``: ``dask-scheduler`` (port
+    8786 published) and ``dask-worker`` (``workers`` replicas, one single-threaded worker
+    process each), from ``image``, which must hold the ``cluster`` extra. Workers need no
+    scenario file: every task carries its scenario as data."""
+    if workers < 1:
+        raise ScenarioError(f"--dask-workers: expected at least 1 worker, got {workers}")
+    blas = {v: "1" for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    scheduler = {"image": image, "init": True, "entrypoint": Flow(["dask", "scheduler"]),
+                 "command": Flow(["--host", "0.0.0.0", "--port", str(DASK_PORT), "--no-dashboard"]),
+                 "ports": [Quoted(f"{DASK_PORT}:{DASK_PORT}")], "restart": "unless-stopped"}
+    worker = {"image": image, "init": True, "entrypoint": Flow(["dask", "worker"]),
+              "command": Flow([f"tcp://{DASK_SCHEDULER}:{DASK_PORT}", "--nthreads", "1", "--no-dashboard"]),
+              "environment": blas, "depends_on": [DASK_SCHEDULER], "deploy": {"replicas": int(workers)},
+              "restart": "on-failure"}
+    return {DASK_SCHEDULER: scheduler, "dask-worker": worker}

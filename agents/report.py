@@ -321,8 +321,8 @@ def boundary_lines(path: str | Path) -> list[str]:
     meta = json.loads(f.read_text())
     out = []
     for r in meta.get("results", []):
-        where = ", ".join(f"{k}={v}" for k, v in r.items()
-                          if k not in {"estimate", "ci_low", "ci_high", "level", "runs", "queries", "inside"})
+        where = ", ".join(f"{k}={v}" for k, v in r.get("at", {}).items())
         out.append(f"{(where + ': ') if where else ''}boundary {r['estimate']:.4f}, {int(r['level'] * 100)}% interval "
-                   f"[{r['ci_low']:.4f}, {r['ci_high']:.4f}], {r['runs']} runs")
+                   f"from the seeds [{r['ci_low']:.4f}, {r['ci_high']:.4f}], search interval "
+                   f"[{r['search_low']:.4f}, {r['search_high']:.4f}], {r['runs']} runs")
     return out

@@ -65,12 +65,12 @@ def boundary(scenario: Path, vary: tuple[str, ...], metric: str, threshold: floa
                                  record=record, progress=progress)
     key = vary[0].split("=", 1)[0].strip()
     for r in results:
-        where = ", ".join(f"{k}={r[k]}" for k in r if k not in {"estimate", "ci_low", "ci_high", "level", "runs",
-                                                                "queries", "inside"})
+        where = ", ".join(f"{k}={v}" for k, v in r["at"].items())
         note = "" if r["inside"] else " (at an end of the range: no crossing inside it)"
-        console.print(f"{(where + ': ') if where else ''}{key} = {r['estimate']:.4f}, "
-                      f"{int(r['level'] * 100)}% interval [{r['ci_low']:.4f}, {r['ci_high']:.4f}], "
-                      f"{r['runs']} runs in {r['queries']} queries{note}")
+        console.print(f"{(where + ': ') if where else ''}{key} = {r['estimate']:.4f}{note}; "
+                      f"{int(r['level'] * 100)}% interval from the seeds [{r['ci_low']:.4f}, {r['ci_high']:.4f}], "
+                      f"search interval [{r['search_low']:.4f}, {r['search_high']:.4f}]; "
+                      f"{r['runs']} runs in {r['queries']} queries")
     console.print(f"{len(rows)} runs in {out}; table: {out / 'boundary.parquet'}")
     if png:
         path = figure(out, rows, results, scenario=scenario, vary=list(vary), metric=metric, threshold=threshold,

@@ -33,9 +33,12 @@ _IMAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@-]*\Z")
 @click.option("--secure", type=click.Path(path_type=Path), default=None, metavar="DIR",
               help="Credentials written by `rse certs DIR --scenario SCENARIO`: mutual TLS and the router's "
                    "access control; each service mounts only ca.pem and its own certificate and key.")
+@click.option("--dask-workers", type=click.IntRange(min=0), default=0, show_default=True, metavar="N",
+              help="Also add a Dask scheduler (port 8786) and N Dask workers for `rse sweep --cluster "
+                   "tcp://HOST:8786` (the image needs the cluster extra).")
 @handle_errors
 def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output: str, image: str | None,
-            run_id: str | None, secure: Path | None) -> None:
+            run_id: str | None, secure: Path | None, dask_workers: int) -> None:
     """Write a docker-compose file running SCENARIO as a team of containers.
 
     Services: router (a Zenoh router, port 7447 published), plant, monitor (the run
@@ -68,6 +71,11 @@ def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output
                         overrides=overrides, seed=seed)
     cmd = command_line(scenario, output if to_stdout else path.name, base=base, run_id=run_id,
                        default_run=default_run, image=image, secure=secure, overrides=overrides, seed=seed)
+    if dask_workers:
+        from ..compose import DASK_PORT, dask_services
+
+        spec["services"].update(dask_services(dask_workers, image=image))
+        cmd += f" --dask-workers {dask_workers}"
     header = [
         f"{exp.scenario.run.name}: router, plant, monitor and {len(exp.agent_ids)} agents; run id {run_id}.",
         f"Written by `{cmd}`: regenerate it rather than edit it.",
@@ -76,6 +84,9 @@ def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output
         f"Run directory: the volume 'runs', /runs/{run_id} in the monitor "
         f"(docker compose cp monitor:/runs/{run_id} runs/).",
     ]
+    if dask_workers:
+        header.append(f"Dask: docker compose up -d dask-scheduler dask-worker, then rse sweep SCENARIO ... "
+                      f"--cluster tcp://127.0.0.1:{DASK_PORT} (docs/sweeps.md).")
     text = render(spec, header)
     if to_stdout:
         click.echo(text, nl=False)
@@ -85,4 +96,5 @@ def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output
     n = len(exp.agent_ids)
     click.echo(f"wrote {path}: router, plant, monitor, {n} agent(s) "
                f"({', '.join(s for s in spec['services'] if s.startswith('agent-'))}); run id {run_id}"
-               + ("; TLS identities from " + str(secure) if secure is not None else ""))
+               + ("; TLS identities from " + str(secure) if secure is not None else "")
+               + (f"; Dask scheduler and {dask_workers} worker(s)" if dask_workers else ""))

@@ -3,6 +3,7 @@
 import json
 from pathlib import Path
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
@@ -54,3 +55,34 @@ def test_bad_grid_values_fail_before_any_run(tmp_path):
     with pytest.raises(ScenarioError, match="drop_p"):
         run_sweep(SC, ["network.channel.drop_p=0.5,1.5"], seeds=1, jobs=1, out=tmp_path / "s", overrides=["expect=[]"])
     assert not (tmp_path / "s").exists()
+
+
+def test_each_run_is_tagged_in_its_recording_and_rse_report_prints_the_sweep(tmp_path, run_rse):
+    rr = pytest.importorskip("rerun")
+    pytest.importorskip("datafusion", reason="reading .rrd files needs rerun-sdk[catalog] (the test extra)")
+    from tests.agents.test_dashboard import read_rrd
+
+    out = tmp_path / "sweep"
+    rows = run_sweep(SC, ["network.channel.drop_p=0.0,0.8"], seeds=1, jobs=2, out=out,
+                     overrides=["run.rounds=40", "expect=[]"])
+    # every run of the sweep in one dataset (as in one viewer), one segment per run, found by its tags
+    files = sorted(str(f) for f in out.glob("points/*/run.rrd"))
+    assert len(files) == 2
+    with rr.server.Server(datasets={"sweep": files}) as srv:
+        client = srv.client()
+        seg = client.get_dataset("sweep").segment_table().to_pandas()
+        del client
+    tags = {str(r["property:sweep:point"][0]): r for _, r in seg.iterrows()}
+    for row in rows:
+        t = tags[row["point"]]
+        assert t["property:sweep:network_channel_drop_p"][0] == pytest.approx(row["network.channel.drop_p"])
+        assert t["property:sweep:seed"][0] == row["seed"]
+        assert t["property:RecordingInfo:name"][0] == f"drop_p={row['network.channel.drop_p']} seed={row['seed']}"
+        df = read_rrd(out / "points" / row["point"] / "run.rrd")
+        worst = df[["k", "/worst/relative_error_2/x:Scalars:scalars"]].dropna()
+        assert len(worst) == 41
+        final = worst["/worst/relative_error_2/x:Scalars:scalars"].iloc[-1]
+        assert float(np.ravel(final)[0]) == pytest.approx(np.log10(row["worst_final_relative_error_2"]))
+    rep = run_rse("report", str(out), cwd=tmp_path)
+    assert rep.returncode == 0, rep.stderr
+    assert "2 runs, 2 points" in rep.stdout and "0.8" in rep.stdout
