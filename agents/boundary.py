@@ -126,7 +126,7 @@ class Search:
     seeds: list[int]
     threshold: float
     fixed: tuple[tuple[str, Any], ...] = ()
-    tol: float = 0.0125
+    tol: float = 0.005
     density: np.ndarray = field(default_factory=lambda: np.full(CELLS, 1.0 / CELLS))
     x: float | None = None          # the current query
     above: int = 0                  # its seeds above the threshold so far
@@ -218,7 +218,7 @@ class Search:
 
 
 def run_boundary(scenario: Path, vary: list[str], *, metric: str, threshold: float, seeds: int, jobs: int,
-                 out: Path, overrides: list[str], cluster: str | None = None, tol: float = 0.0125,
+                 out: Path, overrides: list[str], cluster: str | None = None, tol: float = 0.005,
                  max_runs: int = 90, record: bool = True,
                  progress: Callable[[int, str], None] | None = None) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Find the boundary (one search, or one per value of the second ``--vary``); returns

@@ -78,18 +78,6 @@ def sweep_figures(m: dict[str, Any], pool: dict[str, Any] | None = None) -> list
     ]
 
 
-def measure_both(drop_ps: list[float], seeds: int, rounds: int | None, jobs: int, *, keep_expect: bool = False
-                 ) -> tuple[dict[str, Any], dict[str, Any] | None]:
-    """The same sweep with the process pool, then with a Dask ``LocalCluster`` (``None``
-    when Dask is not installed)."""
-    pool = measure_sweep(drop_ps, seeds, rounds, jobs, keep_expect=keep_expect)
-    try:
-        import distributed  # noqa: F401
-    except ImportError:
-        return pool, None
-    return pool, measure_sweep(drop_ps, seeds, rounds, jobs, cluster="local", keep_expect=keep_expect)
-
-
 def main() -> None:
     """The README's 380-run sweep, with the process pool and with Dask; prints both and the ratio."""
     import argparse
@@ -104,13 +92,18 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1, help="measure the pair this many times")
     a = ap.parse_args()
     drop_ps = [round(i * a.step, 12) for i in range(int(round(0.9 / a.step)) + 1)]
-    for _ in range(a.repeat):
-        pool, dask = measure_both(drop_ps, a.seeds, None, a.jobs, keep_expect=True)
-        line = f"pool: {pool['runs']} runs in {pool['elapsed_s']:.1f} s"
-        if dask is not None:
-            line += (f"; dask LocalCluster: {dask['runs']} runs in {dask['elapsed_s']:.1f} s; "
-                     f"throughput dask/pool = {pool['elapsed_s'] / dask['elapsed_s']:.2f}")
-        print(line, flush=True)
+    try:
+        import distributed  # noqa: F401
+        dask = True
+    except ImportError:
+        dask = False
+    for _ in range(a.repeat):  # each figure printed as soon as it is measured
+        pool = measure_sweep(drop_ps, a.seeds, None, a.jobs, keep_expect=True)
+        print(f"pool: {pool['runs']} runs in {pool['elapsed_s']:.1f} s", flush=True)
+        if dask:
+            d = measure_sweep(drop_ps, a.seeds, None, a.jobs, cluster="local", keep_expect=True)
+            print(f"dask LocalCluster: {d['runs']} runs in {d['elapsed_s']:.1f} s; "
+                  f"throughput dask/pool = {pool['elapsed_s'] / d['elapsed_s']:.2f}", flush=True)
 
 
 if __name__ == "__main__":

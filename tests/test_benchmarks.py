@@ -27,6 +27,7 @@ QUICK_FIGURES = {
     "run/2 procs": ["rounds_per_s", "agent_rounds_per_s", "skeleton_rounds_per_s", "runtime_vs_skeleton",
                     "agent_rss_max_mb", "agent_rss_median_mb"],
     "sweep/2 runs": ["elapsed_s", "runs_per_s", "agent_rounds_per_s"],
+    "sweep/2 runs dask": ["dask_vs_pool", "elapsed_s", "runs_per_s", "agent_rounds_per_s"],  # the cluster extra
 }
 
 
@@ -70,13 +71,14 @@ def test_quick_run_writes_every_figure_with_sane_values(quick):
     # it when the agents get leaner (the target is <= 60 MB)
     assert 20 < v["run/2 procs/agent_rss_median_mb"] <= v["run/2 procs/agent_rss_max_mb"] < 250
     assert v["sweep/2 runs/runs_per_s"] == pytest.approx(2 / v["sweep/2 runs/elapsed_s"])
+    assert v["sweep/2 runs dask/dask_vs_pool"] == pytest.approx(v["sweep/2 runs/elapsed_s"] / v["sweep/2 runs dask/elapsed_s"])
     m = doc["machine"]
     assert m["cpu"] and m["cores_logical"] >= 1 and m["python"].split()[-1] == ".".join(map(str, sys.version_info[:3]))
     assert m["os"] and len(m["loadavg_start"]) == 3 and len(m["loadavg_end"]) == 3
     # the checkout's commit (not compared with HEAD: other commits may land while the suite runs)
     assert re.fullmatch(r"[0-9a-f]{40}", doc["git"]["commit"]) and isinstance(doc["git"]["dirty"], bool)
     assert doc["settings"]["run_processes"] == [2]
-    assert [s["step"].split(":")[0] for s in doc["steps"]] == ["simulate", "run", "sweep"]
+    assert [s["step"].split(":")[0] for s in doc["steps"]] == ["simulate", "run", "sweep", "sweep"]
     assert all(s["elapsed_s"] > 0 for s in doc["steps"])
 
 

@@ -20,7 +20,7 @@ from .common import handle_errors
 @click.option("--threshold", type=float, required=True, help="The metric's value that separates success from failure.")
 @click.option("--seeds", type=click.IntRange(1, 10_000), default=20, show_default=True,
               help="Seeds per query point (run.seed, run.seed + 1, ...): the boundary is where their median crosses.")
-@click.option("--tol", type=click.FloatRange(min=0, min_open=True), default=0.0125, show_default=True,
+@click.option("--tol", type=click.FloatRange(min=0, min_open=True), default=0.005, show_default=True,
               help="Stop when the 95%% interval is narrower than 2 x TOL.")
 @click.option("--max-runs", type=click.IntRange(min=1), default=90, show_default=True,
               help="Stop after this many runs (per search).")

@@ -31,23 +31,28 @@ def test_median_interval_uses_the_order_statistics_of_the_binomial():
     assert median_interval(b[:5]) == (-math.inf, math.inf)  # 5 seeds cannot give 95%
 
 
-@pytest.mark.parametrize("rng_seed", [0, 1, 2, 3])
-def test_search_finds_the_median_crossing_of_twenty_seeds_in_under_a_quarter_of_the_grid(rng_seed):
-    rng = np.random.default_rng(rng_seed)
-    crossing = {s: 0.85 + 0.03 * rng.standard_normal() for s in range(20)}  # each seed's own boundary
-    order = sorted(crossing.values())
-    median = (order[9] + order[10]) / 2
-    s = Search("network.channel.drop_p", 0.0, 0.95, list(range(20)), 1e-6)
-    while not s.done(90):
-        batch = s.next_batch()  # a seed's metric: 1e-15 below its crossing, 0.5 above
-        s.observe([0.5 if p.values[-1][1] > crossing[p.seed] else 1e-15 for p in batch])
-    r = s.result()
-    assert r["runs"] <= 95
-    assert abs(r["estimate"] - median) < 0.01, r
-    assert r["search_low"] <= r["estimate"] <= r["search_high"]
-    # the interval from the seeds is conservative: it holds the 6th and 15th crossings
-    assert r["ci_low"] <= order[5] and r["ci_high"] >= order[14], r
-    assert r["inside"]
+def test_search_finds_the_median_crossing_of_twenty_seeds_in_under_a_quarter_of_the_grid():
+    """40 synthetic searches: each seed has its own crossing near 0.85 (spread 0.03); the
+    target is where the median over the 20 seeds crosses (np.median of 20 values is the
+    mean of the 10th and 11th: above 1e-6 once 10 seeds are at 0.5)."""
+    covered, errors = 0, []
+    for rng_seed in range(40):
+        rng = np.random.default_rng(rng_seed)
+        crossing = {s: 0.85 + 0.03 * rng.standard_normal() for s in range(20)}  # each seed's own boundary
+        order = sorted(crossing.values())
+        target = order[9]
+        s = Search("network.channel.drop_p", 0.0, 0.95, list(range(20)), 1e-6)
+        while not s.done(90):
+            batch = s.next_batch()  # a seed's metric: 1e-15 below its crossing, 0.5 above
+            s.observe([0.5 if p.values[-1][1] > crossing[p.seed] else 1e-15 for p in batch])
+        r = s.result()
+        assert r["runs"] <= 90 and r["inside"]  # a quarter of the 380-run grid is 95
+        errors.append(abs(r["estimate"] - target))
+        covered += r["search_low"] <= target <= r["search_high"]
+        # the interval from the seeds is conservative: it holds the 6th and 15th crossings
+        assert r["ci_low"] <= order[5] and r["ci_high"] >= order[14], r
+    assert max(errors) < 0.025 and float(np.median(errors)) < 0.005, errors
+    assert covered >= 34  # the search's 95% interval holds the target (37 of 40 when written)
 
 
 def test_a_tie_of_the_seeds_is_decided_by_the_median_of_their_metric():
