@@ -211,7 +211,9 @@ class Search:
         lo, hi = self.interval()
         s_lo, s_hi = median_interval(self.brackets())
         edge = self.tol
-        return {"at": {k: v for k, v in self.fixed}, "estimate": self.quantile(0.5), "ci_low": s_lo, "ci_high": s_hi,
+        finite = math.isfinite(s_lo) and math.isfinite(s_hi)  # too few seeds: no interval from them
+        return {"at": {k: v for k, v in self.fixed}, "estimate": self.quantile(0.5),
+                "ci_low": s_lo if finite else None, "ci_high": s_hi if finite else None,
                 "search_low": lo, "search_high": hi,
                 "level": LEVEL, "runs": self.runs, "queries": len(self.queries),
                 "inside": bool(self.quantile(0.5) > self.lo + edge and self.quantile(0.5) < self.hi - edge)}
@@ -313,8 +315,13 @@ def figure(out: Path, rows: list[dict[str, Any]], results: list[dict[str, Any]],
             ax.semilogy([r[key] for r in pts], [max(r[col], 1e-300) for r in pts], "o", ms=4, color=colour, alpha=0.6,
                         label=f"{label} ({len(pts)} runs)")
         ax.axhline(threshold, color="grey", lw=0.8, ls=":")
-        ax.axvspan(res["ci_low"], res["ci_high"], color="tab:green", alpha=0.2,
-                   label=f"{int(res['level'] * 100)}% interval [{res['ci_low']:.4f}, {res['ci_high']:.4f}]")
+        ax.axvspan(res["search_low"], res["search_high"], color="tab:green", alpha=0.25,
+                   label=f"search interval [{res['search_low']:.4f}, {res['search_high']:.4f}]")
+        if res["ci_low"] is not None:
+            for x in (res["ci_low"], res["ci_high"]):
+                ax.axvline(x, color="tab:green", lw=0.8, ls="--",
+                           label=None if x == res["ci_high"] else
+                           f"{int(res['level'] * 100)}% interval from the seeds [{res['ci_low']:.4f}, {res['ci_high']:.4f}]")
         ax.axvline(res["estimate"], color="tab:green", lw=1.5, label=f"boundary {res['estimate']:.4f} ({res['runs']} runs)")
         if theory:
             mss = mss_curve(scenario, overrides, np.array([lo]))
@@ -326,9 +333,9 @@ def figure(out: Path, rows: list[dict[str, Any]], results: list[dict[str, Any]],
     else:
         key2, vals = parse_grid(vary[1])
         est = [r["estimate"] for r in results]
-        err = [[r["estimate"] - r["ci_low"] for r in results], [r["ci_high"] - r["estimate"] for r in results]]
+        err = [[r["estimate"] - r["search_low"] for r in results], [r["search_high"] - r["estimate"] for r in results]]
         ax.errorbar(vals, est, yerr=err, fmt="o-", color="tab:green", capsize=3,
-                    label=f"boundary, {int(results[0]['level'] * 100)}% intervals ({sum(r['runs'] for r in results)} runs)")
+                    label=f"boundary and search intervals ({sum(r['runs'] for r in results)} runs)")
         if theory:
             bound = []
             for v in vals:
@@ -337,7 +344,7 @@ def figure(out: Path, rows: list[dict[str, Any]], results: list[dict[str, Any]],
             if np.isfinite(bound).any():
                 ax.plot(vals, bound, "s--", color="tab:red", label="MSS certified bound (Theorem 2)")
         ax.set_xlabel(key2)
-        ax.set_ylabel(f"{key} where the median of {col} crosses {threshold:g}")
+        ax.set_ylabel(f"{key.rsplit('.', 1)[-1]} at the boundary")
         ax.set_ylim(lo, hi)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)

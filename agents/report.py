@@ -322,7 +322,8 @@ def boundary_lines(path: str | Path) -> list[str]:
     out = []
     for r in meta.get("results", []):
         where = ", ".join(f"{k}={v}" for k, v in r.get("at", {}).items())
-        out.append(f"{(where + ': ') if where else ''}boundary {r['estimate']:.4f}, {int(r['level'] * 100)}% interval "
-                   f"from the seeds [{r['ci_low']:.4f}, {r['ci_high']:.4f}], search interval "
-                   f"[{r['search_low']:.4f}, {r['search_high']:.4f}], {r['runs']} runs")
+        seeds = "none" if r["ci_low"] is None else f"[{r['ci_low']:.4f}, {r['ci_high']:.4f}]"
+        out.append(f"{(where + ': ') if where else ''}boundary {r['estimate']:.4f}, search interval "
+                   f"[{r['search_low']:.4f}, {r['search_high']:.4f}], {int(r['level'] * 100)}% interval "
+                   f"from the seeds {seeds}, {r['runs']} runs")
     return out

@@ -67,10 +67,12 @@ def boundary(scenario: Path, vary: tuple[str, ...], metric: str, threshold: floa
     for r in results:
         where = ", ".join(f"{k}={v}" for k, v in r["at"].items())
         note = "" if r["inside"] else " (at an end of the range: no crossing inside it)"
+        seeds_ci = (f"[{r['ci_low']:.4f}, {r['ci_high']:.4f}]" if r["ci_low"] is not None
+                    else f"none ({seeds} seeds are too few)")
         console.print(f"{(where + ': ') if where else ''}{key} = {r['estimate']:.4f}{note}; "
-                      f"{int(r['level'] * 100)}% interval from the seeds [{r['ci_low']:.4f}, {r['ci_high']:.4f}], "
                       f"search interval [{r['search_low']:.4f}, {r['search_high']:.4f}]; "
-                      f"{r['runs']} runs in {r['queries']} queries")
+                      f"{int(r['level'] * 100)}% interval from the seeds {seeds_ci}; "
+                      f"{r['runs']} runs in {r['queries']} queries", soft_wrap=True)
     console.print(f"{len(rows)} runs in {out}; table: {out / 'boundary.parquet'}")
     if png:
         path = figure(out, rows, results, scenario=scenario, vary=list(vary), metric=metric, threshold=threshold,

@@ -29,6 +29,8 @@ def test_median_interval_uses_the_order_statistics_of_the_binomial():
     # 20 seeds at 95%: ranks 6 and 15 (coverage 1 - 2 P(Bin(20, 1/2) <= 5) = 0.9586)
     assert median_interval(b) == (6.0, 15.5)
     assert median_interval(b[:5]) == (-math.inf, math.inf)  # 5 seeds cannot give 95%
+    s = Search("k", 0.0, 1.0, list(range(5)), 1e-6)
+    assert s.result()["ci_low"] is None and s.result()["ci_high"] is None
 
 
 def test_search_finds_the_median_crossing_of_twenty_seeds_in_under_a_quarter_of_the_grid():
@@ -114,3 +116,20 @@ def test_boundary_writes_every_run_the_summary_and_the_figure(tmp_path, run_rse)
     assert f"network.channel.drop_p = {res['estimate']:.4f}" in r.stdout and res["at"] == {}
     rep = run_rse("report", str(out), cwd=tmp_path)
     assert rep.returncode == 0 and f"boundary {res['estimate']:.4f}" in rep.stdout
+
+
+@pytest.mark.slow
+def test_two_vary_trace_the_boundary_over_a_second_key_beside_the_theory(tmp_path, run_rse):
+    out = tmp_path / "curve"
+    r = run_rse("boundary", SC, "--vary", "network.channel.drop_p=0:0.95", "--vary", "plant.params.lam_high=1.1,1.3",
+                "--threshold", "1e-6", "--seeds", "5", "--max-runs", "10", "--jobs", "2", "--no-rrd",
+                "--set", "run.rounds=60", "--set", "expect=[]", "--out", str(out), cwd=tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    res = json.loads((out / "boundary.json").read_text())["results"]
+    assert [x["at"] for x in res] == [{"plant.params.lam_high": 1.1}, {"plant.params.lam_high": 1.3}]
+    assert all(10 <= x["runs"] <= 15 for x in res)
+    rows = pq.read_table(out / "boundary.parquet").to_pylist()
+    assert sorted({row["plant.params.lam_high"] for row in rows}) == [1.1, 1.3]
+    assert len(rows) == sum(x["runs"] for x in res)
+    assert "plant.params.lam_high=1.1: network.channel.drop_p = " in r.stdout
+    assert (out / "boundary.png").stat().st_size > 10_000
