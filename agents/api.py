@@ -10,6 +10,9 @@
     team = rse.run_team(exp, out="runs/y")        # the same scenario as processes over Zenoh
     rse.check(exp)                                # the paper's conditions, as data
     rse.sweep("scenarios/mitra_cells.toml", {"network.channel.drop_p": [0.1, 0.5]}, seeds=3)
+    rse.sweep(..., cluster="tcp://HOST:8786")     # the same runs on a Dask cluster
+    rse.boundary("scenarios/mitra_cells.toml", "network.channel.drop_p", (0, 0.95),
+                 metric="relative_error_2", threshold=1e-6, seeds=20)   # probabilistic bisection
 
 Everything here raises the runtime's own exceptions (:mod:`estimation.errors`): a bad
 scenario or override is a :class:`~estimation.errors.ScenarioError` naming the file and key.
@@ -40,6 +43,7 @@ __all__ = [
     "run_team",
     "check",
     "sweep",
+    "boundary",
     "open_run",
     "RunResult",
     "pin_blas_threads",
@@ -83,12 +87,15 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
 def sweep(scenario: str | Path, grid: Mapping[str, Iterable[Any]] | Iterable[str], *, seeds: int = 1,
           jobs: int | None = None, out: str | Path | None = None,
           set: Mapping[str, Any] | Iterable[str] | None = None,
-          progress: Callable[[int, int], None] | None = None) -> pd.DataFrame:
+          progress: Callable[[int, int], None] | None = None, cluster: str | None = None,
+          record: bool = True) -> pd.DataFrame:
     """Run ``scenario`` over a grid of overrides and seeds (resumable: an existing ``out``
     keeps its finished runs); returns the sweep's table (``sweep.parquet``).
 
     ``grid`` maps keys to values (``{"network.channel.drop_p": [0.1, 0.5]}``) or is a list of
-    ``KEY=V1,V2|START:STOP:STEP`` strings as ``rse sweep --grid``.
+    ``KEY=V1,V2|START:STOP:STEP`` strings as ``rse sweep --grid``. ``cluster``: the address
+    of a Dask scheduler (``tcp://HOST:8786``; the ``cluster`` extra); ``record``: each
+    run's tagged Rerun recording (``points/ID/run.rrd``).
     """
     import pandas as pd
 
@@ -105,5 +112,35 @@ def sweep(scenario: str | Path, grid: Mapping[str, Iterable[Any]] | Iterable[str
         sc, _ = load_scenario(scenario, ov)
         out = Path("runs") / f"sweep-{sc.run.name}"
     rows = run_sweep(Path(scenario), specs, seeds=seeds, jobs=jobs or os.cpu_count() or 1, out=Path(out),
-                     overrides=ov, progress=progress)
+                     overrides=ov, progress=progress, cluster=cluster, record=record)
     return pd.DataFrame(rows)
+
+
+def boundary(scenario: str | Path, key: str, bounds: tuple[float, float], *, metric: str = "relative_error_2",
+             threshold: float, seeds: int = 20, curve: tuple[str, Iterable[Any]] | None = None,
+             jobs: int | None = None, cluster: str | None = None, out: str | Path | None = None,
+             set: Mapping[str, Any] | Iterable[str] | None = None, tol: float = 0.005,
+             max_runs: int = 90, record: bool = True) -> list[dict[str, Any]]:
+    """The value of ``key`` in ``bounds`` where the median over ``seeds`` seeds of the worst
+    regular agent's ``metric`` crosses ``threshold`` (``rse boundary``: probabilistic
+    bisection, :mod:`agents.boundary`); with ``curve=(KEY2, values)`` one search per value.
+
+    Returns one result per search: ``estimate``, ``search_low``/``search_high`` (the
+    search's 95% interval), ``ci_low``/``ci_high`` (95% interval from the seeds, or None),
+    ``runs``, ``at`` (the value of KEY2). Every run is in ``out/boundary.parquet``.
+    """
+    from scenarios.loader import load as load_scenario, toml_value
+
+    from .boundary import run_boundary
+
+    ov = _override_strings(set)
+    vary = [f"{key}={bounds[0]}:{bounds[1]}"]
+    if curve is not None:
+        vary.append(f"{curve[0]}=" + ",".join(toml_value(v) for v in curve[1]))
+    if out is None:
+        sc, _ = load_scenario(scenario, ov)
+        out = Path("runs") / f"boundary-{sc.run.name}"
+    _, results = run_boundary(Path(scenario), vary, metric=metric, threshold=threshold, seeds=seeds,
+                              jobs=jobs or os.cpu_count() or 1, out=Path(out), overrides=ov, cluster=cluster,
+                              tol=tol, max_runs=max_runs, record=record)
+    return results

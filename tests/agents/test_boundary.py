@@ -133,3 +133,14 @@ def test_two_vary_trace_the_boundary_over_a_second_key_beside_the_theory(tmp_pat
     assert len(rows) == sum(x["runs"] for x in res)
     assert "plant.params.lam_high=1.1: network.channel.drop_p = " in r.stdout
     assert (out / "boundary.png").stat().st_size > 10_000
+
+
+def test_the_public_api_checks_its_input_before_any_run(tmp_path):
+    import rse
+
+    with pytest.raises(ScenarioError, match="empty range"):
+        rse.boundary(SC, "network.channel.drop_p", (0.5, 0.5), threshold=1e-6, out=tmp_path / "b")
+    with pytest.raises(ScenarioError, match="nope"):
+        rse.boundary(SC, "network.channel.drop_p", (0.0, 0.9), threshold=1e-6, curve=("estimator.nope", [1, 2]),
+                     out=tmp_path / "b")
+    assert not (tmp_path / "b").exists()
