@@ -99,7 +99,8 @@ def sweep(scenario: str | Path, grid: Mapping[str, Iterable[Any]] | Iterable[str
     """
     import pandas as pd
 
-    from scenarios.loader import load as load_scenario, toml_value
+    from scenarios.loader import load as load_scenario
+    from scenarios.loader import toml_value
 
     from .sweep import run_sweep
 
@@ -129,7 +130,8 @@ def boundary(scenario: str | Path, key: str, bounds: tuple[float, float], *, met
     search's 95% interval), ``ci_low``/``ci_high`` (95% interval from the seeds, or None),
     ``runs``, ``at`` (the value of KEY2). Every run is in ``out/boundary.parquet``.
     """
-    from scenarios.loader import load as load_scenario, toml_value
+    from scenarios.loader import load as load_scenario
+    from scenarios.loader import toml_value
 
     from .boundary import run_boundary
 

@@ -52,7 +52,8 @@ def boundary(scenario: Path, vary: tuple[str, ...], metric: str, threshold: floa
     from scenarios.loader import load
 
     from ..boundary import figure, run_boundary
-    from ..console import err, out as console
+    from ..console import err
+    from ..console import out as console
 
     sc, _ = load(scenario, list(overrides))
     out = out or Path("runs") / f"boundary-{sc.run.name}"

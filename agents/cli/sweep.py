@@ -44,7 +44,8 @@ def sweep(scenario: Path, grid: tuple[str, ...], seeds: int, jobs: int, out: Pat
 
     from scenarios.loader import load
 
-    from ..console import err, out as console
+    from ..console import err
+    from ..console import out as console
     from ..sweep import figure, run_sweep
 
     sc, _ = load(scenario, list(overrides))

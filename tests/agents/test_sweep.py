@@ -1,6 +1,5 @@
 """``rse sweep``: grid syntax, parallel runs, the table, resuming."""
 
-import json
 from pathlib import Path
 
 import numpy as np
