@@ -21,7 +21,7 @@ from .common import handle_errors
 @click.option("--seeds", type=click.IntRange(1, 10_000), default=20, show_default=True,
               help="Seeds per query point (run.seed, run.seed + 1, ...): the boundary is where their median crosses.")
 @click.option("--tol", type=click.FloatRange(min=0, min_open=True), default=0.005, show_default=True,
-              help="Stop when the 95%% interval is narrower than 2 x TOL.")
+              help="Stop when the search's 95% interval is narrower than 2 x TOL.")
 @click.option("--max-runs", type=click.IntRange(min=1), default=90, show_default=True,
               help="Stop after this many runs (per search).")
 @click.option("--jobs", "-j", type=click.IntRange(1, 256), default=os.cpu_count() or 1, show_default=True,
@@ -43,8 +43,9 @@ def boundary(scenario: Path, vary: tuple[str, ...], metric: str, threshold: floa
     Probabilistic bisection (Waeber, Frazier & Henderson 2013) with a sequential sign test
     over the seeds at each query point: far fewer runs than a grid. Example:
 
-      rse boundary scenarios/mitra_cells.toml --vary network.channel.drop_p=0:0.95
-      --metric relative_error_2 --threshold 1e-6 --seeds 20
+    \b
+      rse boundary scenarios/mitra_cells.toml --vary network.channel.drop_p=0:0.95 \\
+          --metric relative_error_2 --threshold 1e-6 --seeds 20
 
     Writes boundary.parquet (every run), boundary.json (the estimate, its 95% interval, the
     queries) and boundary.png (with Theorem 2's largest tolerable p for an lfre scenario).
