@@ -47,15 +47,27 @@ def measure_sweep(drop_ps: list[float], seeds: int, rounds: int | None, jobs: in
     grid = "network.channel.drop_p=" + ",".join(f"{p:g}" for p in drop_ps)
     exp, _ = load_experiment(SCENARIO, tuple(overrides), None)  # the team size (outside the timing)
     with tempfile.TemporaryDirectory(prefix="rse-benchmarks-sweep-") as tmp:
+        cpu0 = _cpu_s()
         t0 = time.perf_counter()
         rows = run_sweep(SCENARIO, [grid], seeds=seeds, jobs=jobs, out=Path(tmp) / "sweep", overrides=overrides,
                          cluster=cluster)
         elapsed = time.perf_counter() - t0
+        cpu = _cpu_s() - cpu0
     bad = [r for r in rows if r.get("status") != "ok"]
     if bad:
         raise BenchmarkError(f"sweep: {len(bad)} of {len(rows)} runs failed, e.g. {bad[0].get('status')}")
     return {"runs": len(rows), "elapsed_s": elapsed, "N": exp.N, "rounds": exp.scenario.run.rounds + 1, "jobs": jobs,
-            "grid": grid, "seeds": seeds, "executor": "dask" if cluster else "pool"}
+            "grid": grid, "seeds": seeds, "executor": "dask" if cluster else "pool", "cpu_s": cpu}
+
+
+def _cpu_s() -> float:
+    """User + system CPU seconds of this process and of its finished child processes (the
+    workers, once shut down): on a loaded machine the CPU a sweep costs varies far less
+    than its wall time."""
+    import resource
+
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def sweep_figures(m: dict[str, Any], pool: dict[str, Any] | None = None) -> list[Figure]:
@@ -69,6 +81,8 @@ def sweep_figures(m: dict[str, Any], pool: dict[str, Any] | None = None) -> list
     if dask and pool is not None:
         extra.append(Figure("sweep", size, "dask_vs_pool", "throughput, Dask / process pool",
                             pool["elapsed_s"] / m["elapsed_s"], "x", True, "same runs, same session"))
+        extra.append(Figure("sweep", size, "cpu_dask_vs_pool", "CPU seconds, Dask / process pool",
+                            m["cpu_s"] / pool["cpu_s"], "x", False, "this process and its workers"))
     return extra + [
         Figure("sweep", size, "elapsed_s", "sweep wall time", m["elapsed_s"], "s", False,
                f"{m['grid']}, {m['seeds']} seed(s)"),
@@ -99,11 +113,12 @@ def main() -> None:
         dask = False
     for _ in range(a.repeat):  # each figure printed as soon as it is measured
         pool = measure_sweep(drop_ps, a.seeds, None, a.jobs, keep_expect=True)
-        print(f"pool: {pool['runs']} runs in {pool['elapsed_s']:.1f} s", flush=True)
+        print(f"pool: {pool['runs']} runs in {pool['elapsed_s']:.1f} s, {pool['cpu_s']:.1f} CPU s", flush=True)
         if dask:
             d = measure_sweep(drop_ps, a.seeds, None, a.jobs, cluster="local", keep_expect=True)
-            print(f"dask LocalCluster: {d['runs']} runs in {d['elapsed_s']:.1f} s; "
-                  f"throughput dask/pool = {pool['elapsed_s'] / d['elapsed_s']:.2f}", flush=True)
+            print(f"dask LocalCluster: {d['runs']} runs in {d['elapsed_s']:.1f} s, {d['cpu_s']:.1f} CPU s; "
+                  f"throughput dask/pool = {pool['elapsed_s'] / d['elapsed_s']:.2f}, "
+                  f"CPU per run dask/pool = {d['cpu_s'] / pool['cpu_s']:.2f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ QUICK_FIGURES = {
     "run/2 procs": ["rounds_per_s", "agent_rounds_per_s", "skeleton_rounds_per_s", "runtime_vs_skeleton",
                     "agent_rss_max_mb", "agent_rss_median_mb"],
     "sweep/2 runs": ["elapsed_s", "runs_per_s", "agent_rounds_per_s"],
-    "sweep/2 runs dask": ["dask_vs_pool", "elapsed_s", "runs_per_s", "agent_rounds_per_s"],  # the cluster extra
+    "sweep/2 runs dask": ["dask_vs_pool", "cpu_dask_vs_pool", "elapsed_s", "runs_per_s", "agent_rounds_per_s"],
 }
 
 
