@@ -149,7 +149,9 @@ class DaskExecutor:
             return
         import uuid
 
-        from distributed import as_completed
+        from distributed import KilledWorker, as_completed
+
+        from estimation.errors import RSEError
 
         client = self._ensure()
         tag = uuid.uuid4().hex[:8]
@@ -159,7 +161,12 @@ class DaskExecutor:
         try:
             for fut in as_completed(list(futs), loop=client.loop):
                 pending.discard(fut)
-                yield futs[fut], fut.result()
+                try:
+                    result = fut.result()
+                except KilledWorker:  # the scheduler gave up after allowed-failures worker deaths
+                    raise RSEError(f"task {futs[fut]} of {len(futs)} lost: every worker that ran it died "
+                                   "(distributed.scheduler.allowed-failures); finished runs are kept") from None
+                yield futs[fut], result
         finally:
             if pending:
                 client.cancel(list(pending), force=True)

@@ -52,6 +52,8 @@ class Plan:
     run_rounds : ``run.rounds`` of each ``rse run`` (and the skeleton's rounds)
     sweep_drop_ps, sweep_seeds, sweep_rounds, sweep_jobs : the sweep's grid, seeds per
         point, ``run.rounds`` and worker processes
+    sweep_dask : also measure the sweep on a Dask ``LocalCluster`` (when the ``cluster``
+        extra is installed; its start alone takes seconds, so not in the smoke plan)
     """
 
     sim: dict[int, tuple[int, int]]
@@ -61,13 +63,14 @@ class Plan:
     sweep_seeds: int
     sweep_rounds: int
     sweep_jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
+    sweep_dask: bool = True
 
     def settings(self) -> dict[str, Any]:
         return {"sim_rounds": {str(k): v[0] for k, v in self.sim.items()},
                 "sim_repeats": {str(k): v[1] for k, v in self.sim.items()},
                 "run_processes": list(self.run_processes), "run_rounds": self.run_rounds,
                 "sweep_drop_ps": list(self.sweep_drop_ps), "sweep_seeds": self.sweep_seeds,
-                "sweep_rounds": self.sweep_rounds, "sweep_jobs": self.sweep_jobs}
+                "sweep_rounds": self.sweep_rounds, "sweep_jobs": self.sweep_jobs, "sweep_dask": self.sweep_dask}
 
     def limited(self, max_agents: int | None) -> "Plan":
         """This plan without the simulator teams and ``rse run`` teams larger than ``max_agents``."""
@@ -80,7 +83,7 @@ class Plan:
 FULL = Plan(sim={16: (200, 5), 64: (100, 3), 256: (40, 3), 1024: (20, 2)}, run_processes=(2, 4, 8, 16, 32),
             run_rounds=300, sweep_drop_ps=(0.1, 0.2, 0.3, 0.4), sweep_seeds=2, sweep_rounds=100)
 QUICK = Plan(sim={16: (10, 2)}, run_processes=(2,), run_rounds=20, sweep_drop_ps=(0.1, 0.3), sweep_seeds=1,
-             sweep_rounds=10, sweep_jobs=1)
+             sweep_rounds=10, sweep_jobs=1, sweep_dask=False)
 
 
 @dataclass
@@ -131,7 +134,7 @@ def steps(plan: Plan, sections: list[str]) -> list[Step]:
             return sweep_bench.sweep_figures(sweep_pool)
 
         todo.append(Step("sweep", f"sweep: {runs} runs, {plan.sweep_jobs} worker process(es)", pool_step))
-        if _have_dask():
+        if plan.sweep_dask and _have_dask():
             todo.append(Step("sweep", f"sweep: {runs} runs, Dask LocalCluster of {plan.sweep_jobs} worker(s)",
                              lambda: sweep_bench.sweep_figures(sweep_bench.measure_sweep(
                                  list(plan.sweep_drop_ps), plan.sweep_seeds, plan.sweep_rounds, plan.sweep_jobs,
