@@ -70,18 +70,19 @@ def load(scenario: str | Path | Mapping[str, Any], *, set: Mapping[str, Any] | I
     from scenarios.loader import nominal_horizon, read_toml, validate
 
     ov = _override_strings(set) + ([f"run.seed={seed}"] if seed is not None else [])
+    raw: dict[str, Any] | None
     if isinstance(scenario, Mapping):
         source = source or "<scenario>"
-        sc, frozen = validate(dict(scenario), source=source, overrides=ov)
+        raw = dict(scenario)
+        sc, frozen = validate(raw, source=source, overrides=ov)
     else:
         source = source or str(scenario)
         sc, frozen = load_scenario(scenario, ov)
+        raw = read_toml(scenario) if ov else None
     exp = build(sc, source=source, check_conditions=check_conditions)
     exp.frozen = frozen
     exp.overrides = tuple(ov)
-    raw = scenario if isinstance(scenario, Mapping) else None
-    exp.nominal_horizon = (nominal_horizon(dict(raw) if raw is not None else read_toml(scenario)) if ov
-                           else sc.run.n_rounds * sc.run.dt)
+    exp.nominal_horizon = nominal_horizon(raw) if ov and raw is not None else sc.run.n_rounds * sc.run.dt
     return exp
 
 
