@@ -305,27 +305,74 @@ def _instructions(text: str) -> list[tuple[str, str]]:
     return out
 
 
-def test_dockerfile_slim_base_non_root_user_rse_entrypoint_and_healthcheck():
+def _stages(ins: list[tuple[str, str]]) -> dict[str, dict]:
+    """Build stages of a Dockerfile: name -> {"from": image or stage, "ins": its instructions}."""
+    stages: dict[str, dict] = {}
+    for k, a in ins:
+        if k == "FROM":
+            image, _, name = a.partition(" AS ")
+            current = stages.setdefault(name.strip() or image, {"from": image.strip(), "ins": []})
+        else:
+            current["ins"].append((k, a))
+    return stages
+
+
+def _chain(stages: dict[str, dict], name: str) -> list[tuple[str, str]]:
+    """The instructions of ``name`` with those of the stages it is built on, base first."""
+    parent = stages[name]["from"]
+    return (_chain(stages, parent) if parent in stages else []) + stages[name]["ins"]
+
+
+def test_dockerfile_role_targets_slim_base_non_root_user_and_healthcheck():
     ins = _instructions((ROOT / "Dockerfile").read_text())
-    kinds = [k for k, _ in ins]
-    assert ins[0] == ("FROM", "python:3.11-slim")
-    users = [a for k, a in ins if k == "USER"]
-    assert users and users[-1] not in ("root", "0") and not users[-1].startswith(("root:", "0:"))
-    assert kinds.index("USER") > max(i for i, k in enumerate(kinds) if k == "RUN")  # nothing runs as root after
-    assert json.loads(dict(ins)["ENTRYPOINT"]) == ["rse"]
-    health = dict(ins)["HEALTHCHECK"]
-    assert "CMD" in health and json.loads(health.split("CMD", 1)[1]) == ["python", "-m", "agents.healthcheck"]
+    assert ins[0] == ("FROM", "python:3.11-slim AS base")
+    stages = _stages(ins)
+    assert {"agent", "monitor", "full"} <= set(stages)
+    assert list(stages)[-1] == "full"  # `docker build .` without --target: every rse command
+    for name in ("agent", "monitor", "full"):
+        chain = _chain(stages, name)
+        kinds = [k for k, _ in chain]
+        users = [a for k, a in chain if k == "USER"]
+        assert users[-1] == "rse", name
+        last_user = len(kinds) - 1 - kinds[::-1].index("USER")
+        assert last_user > max(i for i, k in enumerate(kinds) if k == "RUN"), name  # nothing runs as root after
+        health = dict(chain)["HEALTHCHECK"]
+        assert json.loads(health.split("CMD", 1)[1]) == ["python", "-m", "agents.healthcheck"], name
+        assert "7447" in " ".join(a for k, a in chain if k == "EXPOSE"), name
     assert (ROOT / "agents" / "healthcheck.py").is_file()
-    run = " ".join(a for k, a in ins if k == "RUN")
-    assert "pip install --no-cache-dir" in run and "useradd" in run and users[-1] in run
-    assert "EXPOSE" in kinds and set(dict(ins)["EXPOSE"].split()) == {"7447", "9090", "9876"}
+    full = dict(_chain(stages, "full"))
+    assert json.loads(full["ENTRYPOINT"]) == ["rse"]
+    exposed = " ".join(a for k, a in _chain(stages, "monitor") if k == "EXPOSE").split()
+    assert {"9090", "9876"} <= set(exposed)
+    assert "useradd" in " ".join(a for k, a in stages["base"]["ins"] if k == "RUN")
+
+
+def test_dockerfile_role_images_install_requirements_of_pyproject():
+    """The agent and monitor stages name their packages with pyproject.toml's own specifiers,
+    and the agent stage only what an agent process needs."""
+    stages = _stages(_instructions((ROOT / "Dockerfile").read_text()))
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    known = set(meta["dependencies"]) | {r for e in meta["optional-dependencies"].values() for r in e}
+
+    def installed(stage: str) -> list[str]:
+        out = []
+        for k, a in stages[stage]["ins"]:
+            if k == "RUN" and "pip install" in a:
+                out += re.findall(r'"([A-Za-z0-9_.-]+[<>=!~][^"]*)"', a.split("&&")[0])
+        return out
+
+    agent, monitor = installed("agent-deps"), installed("monitor-deps")
+    assert {re.split(r"[<>=!~]", r)[0] for r in agent} == {"numpy", "eclipse-zenoh", "msgpack", "psutil"}
+    assert {re.split(r"[<>=!~]", r)[0] for r in monitor} == {"rerun-sdk", "pyarrow"}
+    for r in agent + monitor:
+        assert r in known, f"Dockerfile requirement {r} is not one of pyproject.toml's"
 
 
 def test_dockerfile_copies_what_the_package_is_built_from_and_the_context_excludes_secrets():
     ins = _instructions((ROOT / "Dockerfile").read_text())
     copied = set()
     for k, a in ins:
-        if k == "COPY":
+        if k == "COPY" and not a.startswith("--from="):
             *srcs, _ = a.split()
             copied |= set(srcs)
     for src in copied:
