@@ -145,7 +145,7 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     if secure is not None:
         router["volumes"] = secure_mounts(secure, "router", base, extra=[f"agent-{i}.pem" for i in agent_ids])
     router["ports"] = [Quoted(f"{ROUTER_PORT}:{ROUTER_PORT}")]
-    router["healthcheck"] = {"test": Flow(HEALTHCHECK), "interval": "2s", "timeout": "5s", "retries": 15}
+    router["healthcheck"] = {"test": Flow(HEALTHCHECK), "interval": "2s", "timeout": "10s", "retries": 15}
     router["restart"] = "unless-stopped"
 
     services: dict[str, Any] = {"router": router}
