@@ -47,7 +47,7 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from tests.conftest import ROOT, SCENARIOS, rse
+from tests.conftest import SCENARIOS, rse
 from tests.deploy import docker as dk
 
 pytestmark = [pytest.mark.slow, pytest.mark.multiprocess]
@@ -299,7 +299,6 @@ def test_an_agent_killed_in_its_container_restarts_and_rejoins(images, tmp_path)
     spec["services"]["plant"]["command"] += ["--rate", "100"]  # lockstep, at most 100 rounds/s
     path.write_text(yaml.safe_dump(spec, sort_keys=False))
     with dk.ComposeRun(path) as run:
-        t_up = time.time()
         run.up()
         port = dk.docker("port", run.container("router"), "7447").stdout.split()[0].rsplit(":", 1)[1]
         watch = RoundWatch(port, "lks-restart")
