@@ -2,7 +2,8 @@
 # python:3.11-slim, run as the non-root user rse (uid 1000). See docs/deployment.md.
 #
 #   target   tag (what rse compose names)            what it carries
-#   agent    resilient-state-estimation-agent        the package + numpy, eclipse-zenoh, msgpack, psutil
+#   agent    resilient-state-estimation-agent        the package + numpy, eclipse-zenoh, msgpack, click, rich,
+#                                                    psutil: rse router, rse agent --team (an agent's slice)
 #   monitor  resilient-state-estimation-monitor      the agent image + rerun-sdk, pyarrow
 #   full     resilient-state-estimation (default)    the package with all its dependencies and the lmi
 #                                                    extra (cvxpy): the offline designs, every rse command
@@ -56,10 +57,11 @@ RUN pip wheel --no-deps --wheel-dir /wheels /tmp/src \
 print(*p['dependencies'], *(r for e in sys.argv[1].split(',') if e for r in p['optional-dependencies'][e]), sep='\n')" \
        "${EXTRAS}" > /wheels/requirements-full.txt
 
-# what an agent process imports: numpy, Zenoh, msgpack (psutil for the health check)
+# what an agent process imports: numpy, Zenoh, msgpack (click and rich for the rse command
+# and its messages, psutil for the health check)
 FROM base AS agent-deps
 ARG PIP_INDEX_URL PIP_EXTRA_INDEX_URL PIP_TRUSTED_HOST
-RUN pip install "numpy>=1.26" "eclipse-zenoh>=1.0" "msgpack>=1.0" "psutil>=5.9"
+RUN pip install "numpy>=1.26" "eclipse-zenoh>=1.0" "msgpack>=1.0" "click>=8.1" "rich>=13" "psutil>=5.9"
 
 # the monitor's on top: the Rerun recording and stream, the metrics table. rerun_cli is the
 # native viewer (rr.spawn, 280 MB), which a container never starts: the web viewer it
@@ -78,6 +80,8 @@ WORKDIR /home/rse
 HEALTHCHECK --interval=10s --timeout=10s --start-period=60s --retries=3 \
     CMD ["python", "-m", "agents.healthcheck"]
 EXPOSE 7447
+ENTRYPOINT ["rse"]
+CMD ["--help"]
 
 FROM monitor-deps AS monitor
 COPY --from=wheel /wheels/*.whl /wheels/
@@ -88,6 +92,8 @@ HEALTHCHECK --interval=10s --timeout=10s --start-period=60s --retries=3 \
     CMD ["python", "-m", "agents.healthcheck"]
 # Zenoh, Rerun web viewer page, Rerun gRPC endpoint the page reads
 EXPOSE 7447 9090 9876
+ENTRYPOINT ["rse"]
+CMD ["--help"]
 
 # every rse command, the offline designs included (the router, the plant, one-shot designs)
 FROM base AS full

@@ -1,17 +1,25 @@
 """A docker-compose file for a scenario: one container per process of the team.
 
-``rse compose SCENARIO`` (:mod:`agents.cli_compose`) writes it with :func:`compose_spec`
-and :func:`render`. The services, all from one image whose entry point is ``rse``:
+``rse compose SCENARIO`` (:mod:`agents.cli.compose`) writes it with :func:`compose_spec`
+and :func:`render`. The images are the Dockerfile's role targets (:func:`role_images`):
+the *full* image (every ``rse`` command, the offline design stack) and the slim *agent*
+image (numpy, Zenoh, msgpack, click and the package), both with ``rse`` as entry point.
+The services:
 
-* ``router``: ``rse router --listen tcp/0.0.0.0:7447`` (port 7447 published, so agents on
-  other hosts can join); healthy once it listens (``python -m agents.healthcheck``), and
-  every other service waits for that;
-* ``plant``, ``monitor`` and ``agent-{i}`` (one per agent of the scenario): Zenoh clients of
-  the router (``--client --connect tcp/router:7447``) with the same run id and the
-  scenario file mounted read-only at ``/scenario/NAME.toml``;
+* ``router`` (agent image): ``rse router --listen tcp/0.0.0.0:7447`` (port 7447
+  published, so agents on other hosts can join); healthy once it listens (``python -m
+  agents.healthcheck``), and every other service waits for that;
+* ``team`` (full image, one-shot): builds the experiment once, the offline design
+  included, and writes ``team.json`` and each agent's slice (:func:`write_team`) to the
+  volume ``team``; it exits 0 and the agents wait for that;
+* ``plant`` and ``monitor`` (full image) and ``agent-{i}`` (agent image, one per agent of
+  the scenario): Zenoh clients of the router (``--client --connect tcp/router:7447``) with
+  the same run id; the plant and the monitor read the scenario file mounted read-only at
+  ``/scenario/NAME.toml``, an agent reads only its slice (``--team /team/team.json``:
+  no scenario, no design);
 * the monitor writes the run directory to the volume ``runs`` (``/runs/RUN_ID``) and
   serves the Rerun web viewer (ports 9090 and 9876 published);
-* agents restart on failure (a crashed agent rejoins the running team).
+* agents restart on failure (a crashed agent rejoins the running team from its slice).
 
 With ``secure`` (a directory written by ``rse certs``) every process presents its own TLS
 identity: a service mounts ``ca.pem`` and its own ``IDENTITY.pem`` / ``IDENTITY.key``
@@ -29,7 +37,7 @@ from typing import Any, Sequence
 from estimation.errors import ScenarioError
 
 __all__ = ["DEFAULT_IMAGE", "ROUTER_PORT", "WEB_PORT", "GRPC_PORT", "default_run_id", "compose_spec", "render",
-           "secure_mounts"]
+           "role_images", "secure_mounts", "write_team"]
 
 DEFAULT_IMAGE = "resilient-state-estimation:latest"
 ROUTER_PORT = 7447
@@ -39,6 +47,7 @@ ROUTER_HOST = "router"  # the router's service name: its host name on the compos
 SCENARIO_DIR = "/scenario"
 CERTS_DIR = "/certs"
 RUNS_DIR = "/runs"
+TEAM_DIR = "/team"  # the volume "team" in an agent (read-only); the team service writes it at /runs
 HEALTHCHECK = ["CMD", "python", "-m", "agents.healthcheck"]
 
 
@@ -48,6 +57,36 @@ class Quoted(str):
 
 class Flow(list):
     """A list the YAML file writes on one line (commands)."""
+
+
+def role_images(image: str) -> dict[str, str]:
+    """The images of the roles for ``image`` (the full one, ``NAME[:TAG]``): ``full`` is
+    ``image`` itself, ``agent`` is ``NAME-agent[:TAG]`` (the Dockerfile's targets, tagged as
+    its header says)."""
+    slash = image.rfind("/")
+    colon = image.rfind(":")
+    name, tag = (image[:colon], image[colon:]) if colon > slash else (image, "")
+    return {"full": image, "agent": f"{name}-agent{tag}"}
+
+
+def write_team(exp: Any, out: Path, *, scenario: str, run_id: str, connect: str, overrides: Sequence[str] = (),
+               seed: int | None = None) -> Path:
+    """Write ``out/team.json`` and each agent's slice (``out/team/``) for a team of ``exp``
+    whose processes are clients of the router at ``connect``: what ``rse agent --id I
+    --team out/team.json`` reads (as after ``rse run``). Returns the team file."""
+    import json
+
+    from agents.net.launcher import Team
+    from agents.net.protocol import RunConfig
+    from agents.net.slices import agent_slices, write_slices
+    from agents.simulate import make_channel, make_nodes
+
+    out = Path(out)
+    write_slices(out / "team", agent_slices(exp, make_nodes(exp, make_channel(exp))))
+    team = Team(run_id, {}, "client", (connect,), scenario, tuple(overrides), seed, RunConfig())
+    path = out / "team.json"
+    path.write_text(json.dumps(team.as_dict(), indent=1))
+    return path
 
 
 def default_run_id(name: str) -> str:
@@ -104,7 +143,7 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     run_id : str
         The run id every service is given (one run, one Rerun recording).
     image : str
-        The image of every service (built from the repository's Dockerfile).
+        The full image (router and agents run its ``-agent`` sibling: :func:`role_images`).
     secure : Path, optional
         A directory written by ``rse certs``: TLS with one identity per service.
     overrides, seed
@@ -113,32 +152,34 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     Returns
     -------
     dict
-        ``{"services": {...}, "volumes": {"runs": {}}}``.
+        ``{"services": {...}, "volumes": {"runs": {}, "team": {}}}``.
     """
     target = f"{SCENARIO_DIR}/{scenario.name}"
+    images = role_images(image)
     scenario_mount = Quoted(f"{_rel(scenario, base)}:{target}:ro")
     connect = f"tcp/{ROUTER_HOST}:{ROUTER_PORT}"
-    common = [target, "--run-id", run_id, "--client", "--connect", connect]
+    options: list[str] = []
     for ov in overrides:
-        common += ["--set", _escape(ov)]
+        options += ["--set", _escape(ov)]
     if seed is not None:
-        common += ["--seed", str(seed)]
+        options += ["--seed", str(seed)]
+    common = [target, "--run-id", run_id, "--client", "--connect", connect, *options]
     after_router = {"router": {"condition": "service_healthy"}}
 
-    def role(command: list[str], identity: str) -> dict[str, Any]:
-        svc: dict[str, Any] = {"image": image, "init": True}
+    def role(command: list[str], identity: str, img: str, mounts: list[Any]) -> dict[str, Any]:
+        svc: dict[str, Any] = {"image": img, "init": True}
         args = list(command)
-        volumes = [scenario_mount]
+        volumes = list(mounts)
         if secure is not None:
             args += ["--secure", CERTS_DIR, "--identity", identity]
             volumes += secure_mounts(secure, identity, base)
         svc["command"] = Flow(args)
         svc["volumes"] = volumes
-        svc["depends_on"] = after_router
+        svc["depends_on"] = dict(after_router)
         return svc
 
     router_cmd = ["router", "--listen", f"tcp/0.0.0.0:{ROUTER_PORT}"]
-    router: dict[str, Any] = {"image": image, "init": True}
+    router: dict[str, Any] = {"image": images["agent"], "init": True}
     if secure is not None:
         router_cmd += ["--secure", CERTS_DIR, "--run-id", run_id]
     router["command"] = Flow(router_cmd)
@@ -149,17 +190,23 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     router["restart"] = "unless-stopped"
 
     services: dict[str, Any] = {"router": router}
-    services["plant"] = role(["plant", *common], "plant")
+    # the design once, for every agent: the volume "team" (at /runs here: a directory of the image owned by rse)
+    services["team"] = {"image": images["full"], "init": True,
+                        "command": Flow(["compose", target, "--run-id", run_id, "--write-team", RUNS_DIR, *options]),
+                        "volumes": [scenario_mount, Quoted(f"team:{RUNS_DIR}")], "restart": "no"}
+    services["plant"] = role(["plant", *common], "plant", images["full"], [scenario_mount])
     monitor = role(["monitor", *common, "--out", f"{RUNS_DIR}/{run_id}", "--serve-web",
-                    "--web-port", str(WEB_PORT), "--grpc-port", str(GRPC_PORT)], "monitor")
-    monitor["volumes"].append(Quoted(f"runs:{RUNS_DIR}"))
+                    "--web-port", str(WEB_PORT), "--grpc-port", str(GRPC_PORT)], "monitor", images["full"],
+                   [scenario_mount, Quoted(f"runs:{RUNS_DIR}")])
     monitor["ports"] = [Quoted(f"{WEB_PORT}:{WEB_PORT}"), Quoted(f"{GRPC_PORT}:{GRPC_PORT}")]
     services["monitor"] = monitor
     for i in agent_ids:
-        svc = role(["agent", "--id", str(i), *common], f"agent-{i}")
+        svc = role(["agent", "--id", str(i), "--team", f"{TEAM_DIR}/team.json", "--run-id", run_id,
+                    "--client", "--connect", connect], f"agent-{i}", images["agent"], [Quoted(f"team:{TEAM_DIR}:ro")])
+        svc["depends_on"]["team"] = {"condition": "service_completed_successfully"}
         svc["restart"] = "on-failure"
         services[f"agent-{i}"] = svc
-    return {"services": services, "volumes": {"runs": {}}}
+    return {"services": services, "volumes": {"runs": {}, "team": {}}}
 
 
 def command_line(scenario: Path, out: str, *, base: Path, run_id: str, default_run: str, image: str,

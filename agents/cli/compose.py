@@ -24,9 +24,9 @@ _IMAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@-]*\Z")
 @click.option("-o", "--output", "output", default="docker-compose.yml", show_default=True, metavar="FILE",
               help="Where to write the compose file ('-': standard output; host paths are then relative to the "
                    "current directory).")
-@click.option("--image", default=None, metavar="NAME",
-              help="Image of every service, built from the repository's Dockerfile "
-                   "(default: resilient-state-estimation:latest).")
+@click.option("--image", default=None, metavar="NAME[:TAG]",
+              help="The full image (team, plant, monitor), built from the repository's Dockerfile; the router and "
+                   "the agents run NAME-agent[:TAG], its target agent (default: resilient-state-estimation:latest).")
 @click.option("--run-id", default=None,
               help="The run id every service is given (one run, one Rerun recording; the monitor writes "
                    "/runs/RUN_ID). Default: the scenario's run name.")
@@ -36,20 +36,28 @@ _IMAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@-]*\Z")
 @click.option("--dask-workers", type=click.IntRange(min=0), default=0, show_default=True, metavar="N",
               help="Also add a Dask scheduler (port 8786) and N Dask workers for `rse sweep --cluster "
                    "tcp://HOST:8786` (the image needs the cluster extra).")
+@click.option("--write-team", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
+              help="Instead of a compose file: build the experiment once and write DIR/team.json and each agent's "
+                   "slice (DIR/team/), what `rse agent --id I --team DIR/team.json` reads (the compose file's "
+                   "one-shot service team runs this).")
 @handle_errors
 def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output: str, image: str | None,
-            run_id: str | None, secure: Path | None, dask_workers: int) -> None:
+            run_id: str | None, secure: Path | None, dask_workers: int, write_team: Path | None) -> None:
     """Write a docker-compose file running SCENARIO as a team of containers.
 
-    Services: router (a Zenoh router, port 7447 published), plant, monitor (the run
+    Services: router (a Zenoh router, port 7447 published), team (one-shot: the offline
+    design once, each agent's slice in the volume `team`), plant, monitor (the run
     directory in the volume `runs`, the Rerun web viewer on ports 9090 and 9876) and one
-    agent-I per agent of the scenario, each a client of the router with the same run id and
-    the scenario file mounted read-only. Agents restart on failure and rejoin the running
-    team. Then: `docker build -t resilient-state-estimation . && docker compose up`.
+    agent-I per agent of the scenario, each a client of the router with the same run id;
+    the plant and the monitor read the scenario file mounted read-only, an agent only its
+    slice. Agents restart on failure and rejoin the running team. Then: build the images
+    (docs/deployment.md) and `docker compose up`.
     """
     from transport.keys import validate_run_id
 
-    from ..compose import DEFAULT_IMAGE, GRPC_PORT, WEB_PORT, command_line, compose_spec, default_run_id, render
+    from ..compose import DEFAULT_IMAGE, GRPC_PORT, ROUTER_HOST, ROUTER_PORT, WEB_PORT, command_line, compose_spec
+    from ..compose import default_run_id, render
+    from ..compose import write_team as write_team_files
 
     image = image if image is not None else DEFAULT_IMAGE
     if not _IMAGE_RE.match(image):
@@ -64,6 +72,11 @@ def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output
         validate_run_id(run_id)
     except ValueError as exc:
         raise ScenarioError(f"--run-id: {exc}") from None
+    if write_team is not None:
+        team = write_team_files(exp, write_team, scenario=str(scenario), run_id=run_id, overrides=overrides, seed=seed,
+                                connect=f"tcp/{ROUTER_HOST}:{ROUTER_PORT}")
+        click.echo(f"wrote {team} and the slices of {len(exp.agent_ids)} agent(s) in {write_team / 'team'}")
+        return
     to_stdout = output == "-"
     path = Path(output)
     base = Path.cwd() if to_stdout else (path.parent if str(path.parent) else Path("."))
@@ -79,7 +92,8 @@ def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output
     header = [
         f"{exp.scenario.run.name}: router, plant, monitor and {len(exp.agent_ids)} agents; run id {run_id}.",
         f"Written by `{cmd}`: regenerate it rather than edit it.",
-        "docker build -t resilient-state-estimation . && docker compose up   (docs/deployment.md)",
+        ("docker build -t resilient-state-estimation . && docker build --target agent -t "
+         "resilient-state-estimation-agent . && docker compose up   (docs/deployment.md)"),
         f"Rerun web viewer: http://127.0.0.1:{WEB_PORT}/?url=rerun+http://127.0.0.1:{GRPC_PORT}/proxy",
         f"Run directory: the volume 'runs', /runs/{run_id} in the monitor "
         f"(docker compose cp monitor:/runs/{run_id} runs/).",

@@ -98,14 +98,48 @@ def test_one_service_per_process_of_the_team(mitra):
     spec, _ = mitra
     ids = agent_ids(MITRA)
     assert len(ids) == 16
-    assert set(spec["services"]) == {"router", "plant", "monitor", *(f"agent-{i}" for i in ids)}
+    assert set(spec["services"]) == {"router", "team", "plant", "monitor", *(f"agent-{i}" for i in ids)}
     for i in ids:
         cmd = spec["services"][f"agent-{i}"]["command"]
         assert cmd[0] == "agent" and flag(cmd, "--id") == str(i)
     assert spec["services"]["plant"]["command"][0] == "plant"
     assert spec["services"]["monitor"]["command"][0] == "monitor"
-    images = {svc["image"] for svc in spec["services"].values()}
-    assert images == {"resilient-state-estimation:latest"}
+    images = {name: svc["image"] for name, svc in spec["services"].items()}
+    slim = {"router", *(f"agent-{i}" for i in ids)}  # the Dockerfile's target agent
+    assert {images[n] for n in slim} == {"resilient-state-estimation-agent:latest"}
+    assert {images[n] for n in set(images) - slim} == {"resilient-state-estimation:latest"}
+
+
+def test_the_design_runs_once_and_each_agent_reads_only_its_slice(mitra):
+    """The one-shot service team writes team.json and the slices to the volume team; the
+    agents wait for it to complete and start from their slice (no scenario, no design)."""
+    spec, _ = mitra
+    team = spec["services"]["team"]
+    cmd = team["command"]
+    assert cmd[:2] == ["compose", "/scenario/mitra_cells.toml"] and flag(cmd, "--write-team") == "/runs"
+    assert flag(cmd, "--run-id") == "team-7"
+    assert "team:/runs" in team["volumes"] and team["restart"] == "no"
+    assert spec["volumes"] == {"runs": {}, "team": {}}
+    for name, svc in spec["services"].items():
+        if not name.startswith("agent-"):
+            continue
+        assert svc["depends_on"] == {"router": {"condition": "service_healthy"},
+                                     "team": {"condition": "service_completed_successfully"}}, name
+        assert svc["volumes"] == ["team:/team:ro"], name
+        assert flag(svc["command"], "--team") == "/team/team.json"
+        assert "--set" not in svc["command"] and not any(a.startswith("/scenario") for a in svc["command"])
+
+
+def test_write_team_writes_what_rse_agent_team_reads(run_rse, tmp_path):
+    res = compose(run_rse, str(LKS), "--run-id", "lks-9", "--write-team", str(tmp_path / "t"))
+    assert res.returncode == 0, res.stderr
+    team = json.loads((tmp_path / "t" / "team.json").read_text())
+    assert team["run_id"] == "lks-9" and team["transport"] == "client" and team["connect"] == ["tcp/router:7447"]
+    from agents.net.slices import find_slices, read_slices
+
+    for i in agent_ids(LKS):
+        data = find_slices(tmp_path / "t" / "team", [i])
+        assert data is not None and [s.agent_id for s in read_slices(data)] == [i]
 
 
 def test_every_process_is_a_client_of_the_router_and_waits_for_it(mitra):
@@ -116,12 +150,12 @@ def test_every_process_is_a_client_of_the_router_and_waits_for_it(mitra):
     assert router["healthcheck"]["test"] == ["CMD", "python", "-m", "agents.healthcheck"]
     for name, svc in spec["services"].items():
         assert svc.get("init") is True, name  # signals forwarded, zombies reaped
-        if name == "router":
+        if name in ("router", "team"):
             continue
         cmd = svc["command"]
         assert "--client" in cmd and flag(cmd, "--connect") == "tcp/router:7447", name
         assert "--listen" not in cmd
-        assert svc["depends_on"] == {"router": {"condition": "service_healthy"}}, name
+        assert svc["depends_on"]["router"] == {"condition": "service_healthy"}, name
 
 
 def test_the_scenario_is_mounted_read_only_and_read_from_the_mount(mitra):
@@ -129,6 +163,9 @@ def test_the_scenario_is_mounted_read_only_and_read_from_the_mount(mitra):
     for name, svc in spec["services"].items():
         if name == "router":
             assert "volumes" not in svc  # plain: the router reads no file
+            continue
+        if name.startswith("agent-"):
+            assert not [v for v in svc["volumes"] if v.split(":")[1].startswith("/scenario")], name  # its slice only
             continue
         mounts = [v for v in svc["volumes"] if v.split(":")[1] == "/scenario/mitra_cells.toml"]
         assert len(mounts) == 1, name
@@ -142,7 +179,7 @@ def test_the_scenario_is_mounted_read_only_and_read_from_the_mount(mitra):
 def test_every_service_has_the_same_run_id(mitra):
     spec, _ = mitra
     ids = {name: flag(svc["command"], "--run-id") for name, svc in spec["services"].items() if name != "router"}
-    assert set(ids.values()) == {"team-7"} and len(ids) == 18
+    assert set(ids.values()) == {"team-7"} and len(ids) == 19
     assert flag(spec["services"]["monitor"]["command"], "--out") == "/runs/team-7"
 
 
@@ -151,7 +188,7 @@ def test_default_run_id_is_the_scenario_name(run_rse, tmp_path):
     assert res.returncode == 0, res.stderr
     spec = yaml.safe_load(res.stdout)
     assert {flag(s["command"], "--run-id") for n, s in spec["services"].items() if n != "router"} == {"lee_kim_shim"}
-    assert set(spec["services"]) == {"router", "plant", "monitor", *(f"agent-{i}" for i in agent_ids(LKS))}
+    assert set(spec["services"]) == {"router", "team", "plant", "monitor", *(f"agent-{i}" for i in agent_ids(LKS))}
 
 
 def test_the_monitor_serves_the_web_viewer_on_published_ports_and_keeps_its_runs(mitra):
@@ -160,7 +197,7 @@ def test_the_monitor_serves_the_web_viewer_on_published_ports_and_keeps_its_runs
     cmd = mon["command"]
     assert "--serve-web" in cmd and flag(cmd, "--web-port") == "9090" and flag(cmd, "--grpc-port") == "9876"
     assert mon["ports"] == ["9090:9090", "9876:9876"]
-    assert "runs:/runs" in mon["volumes"] and spec["volumes"] == {"runs": {}}
+    assert "runs:/runs" in mon["volumes"] and spec["volumes"] == {"runs": {}, "team": {}}
     for name, svc in spec["services"].items():
         if name not in ("monitor", "router"):
             assert "ports" not in svc, name
@@ -181,8 +218,9 @@ def test_overrides_and_seed_reach_every_process_and_dollars_survive_interpolatio
     text = (tmp_path / "c.yml").read_text()
     spec = yaml.safe_load(text)
     for name, svc in spec["services"].items():
-        assert svc["image"] == "registry.example/rse:1.0"
-        if name == "router":
+        slim = name == "router" or name.startswith("agent-")
+        assert svc["image"] == ("registry.example/rse-agent:1.0" if slim else "registry.example/rse:1.0")
+        if slim:  # an agent reads its slice, built with the overrides by the service team
             continue
         cmd = svc["command"]
         sets = [cmd[i + 1] for i, a in enumerate(cmd) if a == "--set"]
@@ -197,6 +235,9 @@ def test_secure_each_service_mounts_only_its_own_credentials(secure):
     ids = agent_ids(MITRA)
     for name, svc in spec["services"].items():
         cert_mounts = [v for v in svc["volumes"] if v.split(":")[1].startswith("/certs/")]
+        if name == "team":  # writes files, opens no session: no credentials at all
+            assert cert_mounts == [] and "--secure" not in svc["command"]
+            continue
         assert all(v.endswith(":ro") for v in svc["volumes"] if v != "runs:/runs"), name
         for v in cert_mounts:  # host file = container file name, from the certs directory
             src, target, _ = v.split(":")
@@ -362,7 +403,7 @@ def test_dockerfile_role_images_install_requirements_of_pyproject():
         return out
 
     agent, monitor = installed("agent-deps"), installed("monitor-deps")
-    assert {re.split(r"[<>=!~]", r)[0] for r in agent} == {"numpy", "eclipse-zenoh", "msgpack", "psutil"}
+    assert {re.split(r"[<>=!~]", r)[0] for r in agent} == {"numpy", "eclipse-zenoh", "msgpack", "click", "rich", "psutil"}
     assert {re.split(r"[<>=!~]", r)[0] for r in monitor} == {"rerun-sdk", "pyarrow"}
     for r in agent + monitor:
         assert r in known, f"Dockerfile requirement {r} is not one of pyproject.toml's"
@@ -480,14 +521,18 @@ SMALL = ("run.dt=0.01", "run.duration=6", "output.window=[4.0, 6.0]", "expect=[]
 
 
 def _materialize(name: str, svc: dict, compose_dir: Path, root: Path) -> Path:
-    """A directory standing for the container of ``name``: only its mounts, at their paths."""
+    """A directory standing for the container of ``name``: only its mounts, at their paths
+    (a named volume: one directory under ``root/_volumes``, linked into each service)."""
     d = root / name
     d.mkdir()
     for v in svc.get("volumes", []):
         src, target, *_ = v.split(":")
         dst = d / target.lstrip("/")
-        if src == "runs":  # the named volume
-            dst.mkdir(parents=True)
+        if not src.startswith((".", "/")):  # a named volume (runs, team)
+            vol = root / "_volumes" / src
+            vol.mkdir(parents=True, exist_ok=True)
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            dst.symlink_to(vol, target_is_directory=True)
             continue
         dst.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2((compose_dir / src).resolve(), dst)
@@ -498,7 +543,7 @@ def _localize(cmd: list[str], d: Path, port: int, ports: dict[str, int]) -> list
     """Container paths -> the service's directory; the router's host name and ports -> loopback."""
     out = []
     for a in cmd:
-        if a.startswith(("/scenario", "/certs", "/runs")):
+        if a.startswith(("/scenario", "/certs", "/runs", "/team")):
             a = str(d / a.lstrip("/"))
         elif a == "tcp/router:7447":
             a = f"tcp/127.0.0.1:{port}"
@@ -536,8 +581,10 @@ def test_a_secure_compose_file_runs_with_each_service_seeing_only_its_mounts(run
     run = {}
     router, ep = procs.router(*_localize(spec["services"]["router"]["command"], dirs["router"], port, ports)[1:])
     assert ep == f"tls/127.0.0.1:{port}"
+    team = procs.start(rse_cmd(*_localize(spec["services"]["team"]["command"], dirs["team"], port, ports)))
+    assert team.wait(timeout=120) == 0, team.communicate()[1]  # the design once: the agents start after it
     for name, svc in spec["services"].items():
-        if name != "router":
+        if name not in ("router", "team"):
             run[name] = procs.start(rse_cmd(*_localize(svc["command"], dirs[name], port, ports)))
     health = {}
     deadline = time.monotonic() + 120
