@@ -49,8 +49,8 @@ COPY transport /tmp/src/transport
 COPY scenarios /tmp/src/scenarios
 COPY rse /tmp/src/rse
 # extras of the full image: lmi (cvxpy) is what the H-infinity and inverter scenarios'
-# offline designs need; add plot for the figures of rse report
-ARG EXTRAS=lmi
+# offline designs need, cluster (Dask) what rse compose --dask-workers runs; add plot for the figures of rse report
+ARG EXTRAS=lmi,cluster
 ARG PIP_INDEX_URL PIP_EXTRA_INDEX_URL PIP_TRUSTED_HOST
 RUN pip wheel --no-deps --wheel-dir /wheels /tmp/src \
     && python -c "import sys, tomllib; p = tomllib.load(open('/tmp/src/pyproject.toml', 'rb'))['project']; \
