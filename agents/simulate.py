@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from estimation.trimmed_mean import fuse
+from estimation.batching import Batch, Batchable
 from scenarios.build import Experiment
 from transport.byzantine import Forged
 from transport.channel import Channel, loss_windows
@@ -31,45 +31,35 @@ from .node import AgentNode
 from .plant import PlantRole
 
 
-def batch_groups(exp: Experiment, nodes: list[AgentNode]) -> list[tuple[str, int, list[int]]]:
-    """The regular agents whose fusion a batched round computes in one call.
-
-    An estimator takes part when it splits its step into ``begin`` / ``finish`` around
-    :func:`estimation.trimmed_mean.fuse` (LFRE and SW-LFRE do); agents are grouped by
-    ``(fusion, f)``. Byzantine agents always run their own ``step``.
-    """
-    groups: dict[tuple[str, int], list[int]] = {}
+def batch_groups(exp: Experiment, nodes: list[AgentNode]) -> list[Batch]:
+    """The regular agents stepped together, one :class:`~estimation.batching.Batch` per
+    group of estimators that declare :class:`~estimation.batching.Batchable` with equal
+    ``batch_key()`` (e.g. LFRE agents by fusion rule and ``f``; every Lee-Kim-Shim agent).
+    Byzantine agents always run their own ``step``."""
+    keys: dict[Any, list[int]] = {}
     for i, node in enumerate(nodes):
         est = node.estimator
-        if i in exp.byzantine or not (hasattr(est, "begin") and hasattr(est, "finish")):
-            continue
-        groups.setdefault((est.fusion, est.f), []).append(i)
-    return [(fusion, f, members) for (fusion, f), members in groups.items()]
-
-
-def fuse_batch(values: list[np.ndarray | None], *, fusion: str, f: int) -> list[np.ndarray | None]:
-    """:func:`~estimation.trimmed_mean.fuse` of each ``(F_i, d_i)`` block (None: nothing),
-    in one call over the blocks stacked row-wise and padded to the widest with NaN (a
-    missing value). Every row's result is exactly what the per-agent call gives."""
-    present = [v for v in values if v is not None]
-    if not present:
-        return [None] * len(values)
-    width = max(v.shape[1] for v in present)
-    stacked = np.full((sum(v.shape[0] for v in present), width), np.nan)
-    row = 0
-    for v in present:
-        stacked[row:row + v.shape[0], :v.shape[1]] = v
-        row += v.shape[0]
-    got = fuse(stacked, fusion=fusion, f=f)
-    out: list[np.ndarray | None] = []
-    row = 0
-    for v in values:
-        if v is None:
-            out.append(None)
-        else:
-            out.append(got[row:row + v.shape[0]])
-            row += v.shape[0]
+        if i not in exp.byzantine and isinstance(est, Batchable):
+            keys.setdefault(est.batch_key(), []).append(i)
+    out = []
+    for members in keys.values():
+        local = {i: m for m, i in enumerate(members)}
+        nbrs = [[local[j] for j in exp.in_neighbours(i) if j in local] for i in members]
+        rows = [np.asarray(exp.agent_rows[i]) for i in members] if exp.static else None
+        est = nodes[members[0]].estimator
+        out.append(type(est).batch([nodes[i].estimator for i in members], in_neighbours=nbrs, agents=members, rows=rows))
     return out
+
+
+def closed_team(exp: Experiment, nodes: list[AgentNode], groups: list[Batch], channel: Channel, diag: list) -> Batch | None:
+    """The batch that is the whole team when it is closed: one batch of every agent,
+    static sensors, a perfect channel, no Byzantine agent, no diagnostics; then each round
+    is one :meth:`~estimation.batching.Batch.step_closed` call (the same maths without
+    the per-message bookkeeping)."""
+    if (len(groups) != 1 or groups[0].agents != list(range(exp.N)) or not channel.perfect or exp.byzantine
+            or not exp.static or diag or any(n.strategy is not None for n in nodes)):
+        return None
+    return groups[0]
 
 
 def make_channel(exp: Experiment) -> Channel:
@@ -165,10 +155,11 @@ def simulate(
     keep_trajectories : also return every estimate and the true state (for equivalence tests)
     record : compute the monitor's metrics (benchmarks may switch it off)
     dashboard : an :class:`agents.dashboard.Dashboard` to stream to (or None)
-    batched : fuse the regular agents' neighbour values in one call per round
-        (:func:`batch_groups`, :func:`fuse_batch`); the per-agent ``begin`` / ``finish``
-        halves of the estimators are the same code, so the estimates are identical to
-        ``batched=False`` (each agent's own ``step``), only faster for large teams
+    batched : step the regular agents whose estimators declare
+        :class:`~estimation.batching.Batchable` in one call per group and round
+        (:func:`batch_groups`; a closed team, :func:`closed_team`, without the
+        per-message bookkeeping); the estimates equal ``batched=False`` (each agent's
+        own ``step``) bit for bit or within 1e-12 relative, as each algorithm's docs say
     """
     channel = make_channel(exp)
     nodes = make_nodes(exp, channel)
@@ -194,45 +185,57 @@ def simulate(
             frames.clear()
         mon.on_chunk = on_chunk
     groups = batch_groups(exp, nodes) if batched else []
-    in_batch = {i for _, _, members in groups for i in members}
-    fused_now: dict[int, np.ndarray | None] = {}
+    in_batch = {i for g in groups for i in g.agents}
+    singles = [i for i in order if i not in in_batch]
+    closed = closed_team(exp, nodes, groups, channel, diag) if batched else None
     est_out = np.empty((N, n))
     traj = np.empty((K + 1, N, n)) if keep_trajectories else None
     truth = np.empty((K + 1, n)) if keep_trajectories else None
+    heard = np.zeros((N, N), dtype=bool)  # a perfect channel delivers every link (closed team)
+    for i in range(N):
+        heard[i, exp.in_neighbours(i)] = True
+
+    def measurement(i: int, k: int, y: np.ndarray) -> np.ndarray | None:
+        if static:
+            return y[rows[i]]
+        r = exp.rows_at(i, k)
+        return None if r is None else y[r]
+
     t0 = last_flush = time.perf_counter()
     for k in range(K + 1):
         y = plant.measure(k)
-        view.k = k
-        for fusion, f, members in groups:  # first halves, then one fusion per group
-            vals = [nodes[i].estimator.begin(k, nodes[i].open_round(k)) for i in members]
-            fused_now.update(zip(members, fuse_batch(vals, fusion=fusion, f=f)))
-        for i in order:
-            node = nodes[i]
-            if static:
-                meas = y[rows[i]]
-            else:
-                r = exp.rows_at(i, k)
-                meas = None if r is None else y[r]
-            if i in in_batch:
-                out = node.estimator.finish(k, meas, fused_now.pop(i))
-            else:
-                out = node.run_round(k, meas)
-            est_out[i] = node.estimate(out)
-            msg = node.publish(k, out) if node.strategy is not None else out
-            deliver(node, k, msg, targets[i])
+        if closed is not None:
+            est_k = closed.step_closed(k, y)
+        else:
+            view.k = k
+            est_k = est_out
+            for g in groups:  # every batch in one call, then the agents stepped alone
+                outs = g.step(k, [measurement(i, k, y) for i in g.agents], [nodes[i].open_round(k) for i in g.agents])
+                est_out[g.agents] = g.estimates()
+                for i, out in zip(g.agents, outs):
+                    deliver(nodes[i], k, out, targets[i])
+            for i in singles:
+                node = nodes[i]
+                out = node.run_round(k, measurement(i, k, y))
+                est_out[i] = node.estimate(out)
+                msg = node.publish(k, out) if node.strategy is not None else out
+                deliver(node, k, msg, targets[i])
         x = plant.x
         if dashboard is not None and dashboard.is_map_frame(k):
-            D = np.zeros((N, N), dtype=bool)
-            for i, node in enumerate(nodes):
-                for j in node.arrived:
-                    D[i, j] = True
+            if closed is not None:
+                D = heard.copy() if k > 0 else np.zeros((N, N), dtype=bool)
+            else:
+                D = np.zeros((N, N), dtype=bool)
+                for i, node in enumerate(nodes):
+                    for j in node.arrived:
+                        D[i, j] = True
             frames[k] = D
         if record:
-            mon.record(k, x, est_out)
+            mon.record(k, x, est_k)
             for i, est in diag:
                 mon.record_diagnostics(k, i, *read_diagnostics(est))
         if keep_trajectories:
-            traj[k] = est_out
+            traj[k] = est_k
             truth[k] = x
         if progress is not None and (k & 255 == 0 or k == K):
             progress(k, mon.current_worst() if record else float("nan"))
@@ -241,6 +244,13 @@ def simulate(
                 last_flush = time.perf_counter()
         if k < K:
             plant.advance(k)
+    for g in groups:
+        g.sync()
+    if closed is not None:  # every message of every link was sent and delivered the next round
+        for node in nodes:
+            for c in node.links.values():
+                c.sent += K + 1
+                c.delivered += K + 1
     mon.flush()
     elapsed = time.perf_counter() - t0
     links = {f"{j}->{node.id}": c.as_dict() for node in nodes for j, c in node.links.items()}

@@ -43,6 +43,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .base import Inbox
+from .batching import Batch, Batchable
 from .errors import DesignError
 from .graphs import algebraic_connectivity
 from .lti import zoh, zoh_integral
@@ -212,7 +213,7 @@ def theorem3_bound(des: LKSDesign, Adj: np.ndarray, gamma: float) -> float | Non
     return float((N * n**2 + np.sqrt(n)) * np.sqrt(N) / (gamma * lam2) * np.linalg.norm(M, 2))
 
 
-class LeeKimShim:
+class LeeKimShim(Batchable):
     """One agent's estimator: partial observer (5) + median coupling (6) / (11) / linear.
 
     Parameters
@@ -336,6 +337,16 @@ class LeeKimShim:
     def estimate(self) -> np.ndarray:
         """Current ``x_hat_i`` (copy), shape ``(n,)``."""
         return self._s[: self.n].copy()
+
+    def batch_key(self) -> tuple:
+        return (LeeKimShim, self.n, self.dt, self.max_age, self._linear, self._implicit, id(self._u))
+
+    @classmethod
+    def batch(cls, members, **kw) -> Batch:
+        """Every member in one stacked step (:class:`estimation.lks_batch.LKSBatch`)."""
+        from .lks_batch import LKSBatch
+
+        return LKSBatch(members, **kw)
 
     @property
     def partial_estimate(self) -> np.ndarray:

@@ -182,3 +182,28 @@ def fuse_block(block: np.ndarray, *, fusion: str, f: int) -> np.ndarray:
     if fusion == "average":
         return block.sum(axis=0) / d
     raise DesignError(f"unknown fusion {fusion!r}; expected one of {', '.join(FUSIONS)}")
+
+
+def fuse_blocks(values: list[np.ndarray | None], *, fusion: str, f: int) -> list[np.ndarray | None]:
+    """:func:`fuse` of each ``(F_i, d_i)`` block (None: nothing), in one call over the
+    blocks stacked row-wise and padded to the widest with NaN (a missing value). Every
+    row's result is exactly what the per-block call gives (each row is fused alone)."""
+    present = [v for v in values if v is not None]
+    if not present:
+        return [None] * len(values)
+    width = max(v.shape[1] for v in present)
+    stacked = np.full((sum(v.shape[0] for v in present), width), np.nan)
+    row = 0
+    for v in present:
+        stacked[row:row + v.shape[0], :v.shape[1]] = v
+        row += v.shape[0]
+    got = fuse(stacked, fusion=fusion, f=f)
+    out: list[np.ndarray | None] = []
+    row = 0
+    for v in values:
+        if v is None:
+            out.append(None)
+        else:
+            out.append(got[row:row + v.shape[0]])
+            row += v.shape[0]
+    return out

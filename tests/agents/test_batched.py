@@ -16,8 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from agents.api import load_experiment
-from agents.simulate import batch_groups, fuse_batch, make_channel, make_nodes, simulate
-from estimation.trimmed_mean import fuse
+from agents.simulate import batch_groups, make_channel, make_nodes, simulate
+from estimation.trimmed_mean import fuse, fuse_blocks
 
 SCEN = Path(__file__).resolve().parents[2] / "scenarios"
 
@@ -39,7 +39,7 @@ def test_batched_equals_per_agent(name: str, overrides: tuple[str, ...]) -> None
     exp, _ = load_experiment(SCEN / name, overrides, None)
     groups = batch_groups(exp, make_nodes(exp, make_channel(exp)))
     assert groups, "the scenario must exercise the batched path"
-    assert sum(len(m) for _, _, m in groups) == exp.N - len(exp.byzantine)
+    assert sum(len(g.agents) for g in groups) == exp.N - len(exp.byzantine)
     a = simulate(exp, keep_trajectories=True, batched=True)
     b = simulate(exp, keep_trajectories=True, batched=False)
     assert np.array_equal(a.estimates, b.estimates)
@@ -63,7 +63,7 @@ def _block(draw, width_max: int) -> np.ndarray | None:
 @given(st.data(), st.sampled_from(["trimmed", "median", "average"]), st.integers(0, 2))
 def test_fuse_batch_row_results_do_not_depend_on_the_batch(data, fusion: str, f: int) -> None:
     blocks = [_block(data.draw, 12) for _ in range(data.draw(st.integers(1, 5)))]
-    got = fuse_batch(blocks, fusion=fusion, f=f)
+    got = fuse_blocks(blocks, fusion=fusion, f=f)
     for blk, g in zip(blocks, got):
         if blk is None:
             assert g is None
