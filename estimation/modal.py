@@ -45,37 +45,82 @@ MAX_COND = 1e12
 
 @dataclass(frozen=True, eq=False)
 class ModalForm:
-    """The modal decomposition of eq. (4).
+    """The modal decomposition of eq. (4), held per decoupled piece.
+
+    ``V`` and ``W`` are block diagonal up to a permutation (one block per connected
+    component of ``A``'s sparsity pattern), so only the pieces are stored: a team of
+    1,024 agents on a 5,120-state diagonal plant holds 5,120 scalars, not two dense
+    5,120 x 5,120 matrices. The dense ``V`` and ``W`` are built on first use (and kept).
 
     Attributes
     ----------
     lam : (n,) float array
         Eigenvalue of each mode (modal coordinate).
-    V : (n, n) float array
-        Eigenvectors as columns: ``x = V z``.
-    W : (n, n) float array
-        ``V^{-1}``: ``z = W x`` (the paper's ``V``).
     block_of_mode : (n,) int array
         Index of the decoupled block each mode belongs to.
     blocks : tuple of (n_b,) int arrays
         State indices of each block.
+    pieces : tuple of ``(states (s,) int array, first mode, vb (s, s), wb (s, s))``
+        Each connected piece: ``V[states, first:first+s] = vb``, ``W[first:first+s, states] = wb``.
+    V : (n, n) float array (property)
+        Eigenvectors as columns: ``x = V z``.
+    W : (n, n) float array (property)
+        ``V^{-1}``: ``z = W x`` (the paper's ``V``).
     """
 
     lam: np.ndarray
-    V: np.ndarray
-    W: np.ndarray
     block_of_mode: np.ndarray
     blocks: tuple[np.ndarray, ...]
+    pieces: tuple[tuple[np.ndarray, int, np.ndarray, np.ndarray], ...]
 
     @property
     def n(self) -> int:
         return int(self.lam.shape[0])
 
+    def _dense(self, which: int) -> np.ndarray:
+        n = self.n
+        M = np.zeros((n, n))
+        for idx, start, vb, wb in self.pieces:
+            modes = np.arange(start, start + idx.size)
+            if which == 0:
+                M[np.ix_(idx, modes)] = vb
+            else:
+                M[np.ix_(modes, idx)] = wb
+        M.setflags(write=False)
+        return M
+
+    @functools.cached_property
+    def V(self) -> np.ndarray:
+        """Dense ``(n, n)`` eigenvector matrix (built from the pieces on first use)."""
+        return self._dense(0)
+
+    @functools.cached_property
+    def W(self) -> np.ndarray:
+        """Dense ``(n, n)`` ``V^{-1}`` (built from the pieces on first use)."""
+        return self._dense(1)
+
     @functools.cached_property
     def is_identity(self) -> bool:
         """Whether ``V`` is the identity (the state is already modal: ``x = z``); computed once."""
-        V = self.V
-        return V.shape[0] == V.shape[1] and bool(np.all(V.diagonal() == 1.0)) and int(np.count_nonzero(V)) == V.shape[0]
+        return all(np.array_equal(idx, np.arange(start, start + idx.size)) and np.array_equal(vb, np.eye(idx.size))
+                   for idx, start, vb, _ in self.pieces)
+
+    @functools.cached_property
+    def _where(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per state: its piece and its row inside the piece."""
+        piece, local = np.zeros(self.n, dtype=int), np.zeros(self.n, dtype=int)
+        for p, (idx, _, _, _) in enumerate(self.pieces):
+            piece[idx], local[idx] = p, np.arange(idx.size)
+        return piece, local
+
+    def v_rows(self, states: np.ndarray) -> np.ndarray:
+        """``V[states, :]`` ``(len(states), n)`` without the dense ``V``."""
+        piece, local = self._where
+        out = np.zeros((len(states), self.n))
+        for r, st in enumerate(states):
+            idx, start, vb, _ = self.pieces[piece[st]]
+            out[r, start:start + idx.size] = vb[local[st]]
+        return out
 
     @property
     def spectral_radius(self) -> float:
@@ -83,12 +128,20 @@ class ModalForm:
         return float(np.max(np.abs(self.lam))) if self.n else 0.0
 
     def to_modal(self, x: np.ndarray) -> np.ndarray:
-        """``z = W x`` for ``x`` of shape ``(..., n)`` (leading batch axes allowed)."""
-        return np.asarray(x, dtype=float) @ self.W.T
+        """``z = W x`` for ``x`` of shape ``(..., n)`` (leading batch axes allowed), piece by piece."""
+        x = np.asarray(x, dtype=float)
+        z = np.empty(x.shape)
+        for idx, start, _, wb in self.pieces:
+            z[..., start:start + idx.size] = x[..., idx] @ wb.T
+        return z
 
     def to_state(self, z: np.ndarray) -> np.ndarray:
-        """``x = V z`` for ``z`` of shape ``(..., n)``."""
-        return np.asarray(z, dtype=float) @ self.V.T
+        """``x = V z`` for ``z`` of shape ``(..., n)``, piece by piece."""
+        z = np.asarray(z, dtype=float)
+        x = np.empty(z.shape)
+        for idx, start, vb, _ in self.pieces:
+            x[..., idx] = z[..., start:start + idx.size] @ vb.T
+        return x
 
     def modal_rows(self, C: np.ndarray) -> np.ndarray:
         """``C~ = C V`` of eq. (4): measurement rows ``(r, n)`` in modal coordinates.
@@ -99,7 +152,7 @@ class ModalForm:
         if self.is_identity:
             return C.copy()
         cols = np.flatnonzero(np.any(C != 0, axis=0))
-        return C[:, cols] @ self.V[cols, :]
+        return C[:, cols] @ self.v_rows(cols)
 
 
 def decoupled_blocks(A: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -193,10 +246,9 @@ def modal_form(A: np.ndarray, *, blocks: Sequence[Sequence[int]] | None = None) 
         if np.any(cross):
             r, c = int(rows[cross][0]), int(cols[cross][0])
             raise DesignError(f"blocks are not decoupled: A[{r}, {c}] = {A[r, c]:.6g} couples block {label[r]} and block {label[c]}")
-    V = np.zeros((n, n))
-    W = np.zeros((n, n))
     lam = np.zeros(n)
     block_of_mode = np.zeros(n, dtype=int)
+    pieces = []
     start = 0
     for b, part in enumerate(parts):
         # a given block may itself split into decoupled pieces (e.g. a diagonal cell)
@@ -205,10 +257,12 @@ def modal_form(A: np.ndarray, *, blocks: Sequence[Sequence[int]] | None = None) 
             lb, vb = _block_eig(A[np.ix_(idx, idx)], where=f"block {b} (states {part[0]}..{part[-1]})")
             modes = np.arange(start, start + idx.size)
             lam[modes] = lb
-            V[np.ix_(idx, modes)] = vb
-            W[np.ix_(modes, idx)] = np.linalg.inv(vb)
+            wb = np.linalg.inv(vb)
+            for arr in (idx, vb, wb):
+                arr.setflags(write=False)
+            pieces.append((idx, start, vb, wb))
             block_of_mode[modes] = b
             start += idx.size
-    for arr in (lam, V, W, block_of_mode):
+    for arr in (lam, block_of_mode):
         arr.setflags(write=False)
-    return ModalForm(lam=lam, V=V, W=W, block_of_mode=block_of_mode, blocks=parts)
+    return ModalForm(lam=lam, block_of_mode=block_of_mode, blocks=parts, pieces=tuple(pieces))
