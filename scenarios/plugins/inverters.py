@@ -41,6 +41,7 @@ import numpy as np
 from pydantic import Field
 
 from estimation import graphs
+from estimation.batching import Batch, Batchable
 from estimation.distributed_median import FloodingMedian, SignMedianAgent
 from estimation.errors import DesignError, ScenarioError
 from estimation.inverters import InverterNetwork, InverterParams, droop_slope_bound, random_voltage_disturbance
@@ -301,9 +302,19 @@ def design(exp: "Experiment", *, check: bool = True) -> MedianBankDesign:
 
 
 # --------------------------------------------------------------------------- estimators
-class CentralEstimator:
+class CentralEstimator(Batchable):
     """The substation: one estimator reading every sensor (modes median, conventional,
-    static_inversion). ``estimates`` is the bank's ``(N, n)`` in the median mode."""
+    static_inversion). ``estimates`` is the bank's ``(N, n)`` in the median mode.
+    Batchable: the median mode steps its bank as one stacked state (:mod:`.inverters_batch`)."""
+
+    def batch_key(self) -> tuple:
+        return (CentralEstimator, self.mode, id(self._lure), self._dt)
+
+    @classmethod
+    def batch(cls, members, **kw) -> Batch:
+        from .inverters_batch import BankBatch, SerialBatch
+
+        return (BankBatch if members[0].mode == "median" else SerialBatch)(members, **kw)
 
     def __init__(self, mode: str, lure: LurePlant, *, order: np.ndarray, dt: float, x0: np.ndarray,
                  bank: dict | None, conventional: dict | None, to_lure, M: int, substeps: int) -> None:
@@ -343,13 +354,25 @@ def _valid(value: Any, size: int) -> bool:
     return v.shape == (size,) and bool(np.all(np.isfinite(v)))
 
 
-class DistributedMedianEstimator:
+class DistributedMedianEstimator(Batchable):
     """One inverter (mode distributed): its own observer (9) on its own sensor, and the
     sign-based distributed median of the team's estimates. Publishes and reports ``xi_i``;
     ``local_estimate`` is its observer's ``x_hat^i``. Neighbour messages that are not a
-    finite ``(n,)`` array are ignored."""
+    finite ``(n,)`` array are ignored. Batchable (:mod:`.inverters_batch`)."""
 
     payload_is_estimate = True
+
+    def batch_key(self) -> tuple:
+        o, kw = self._obs, self._solver._kw
+        drift = "model" if isinstance(kw["drift"], LureDrift) else ("reference" if self._solver._ref else "none")
+        return (DistributedMedianEstimator, id(o._plant), o._dt, o._substeps, kw["kappa"], kw["gamma"], kw["sign"],
+                drift, self._solver.max_age)
+
+    @classmethod
+    def batch(cls, members, **kw) -> Batch:
+        from .inverters_batch import DistributedBatch
+
+        return DistributedBatch(members, **kw)
 
     def __init__(self, lure: LurePlant, *, sensor: int, bank: dict, dt: float, x0: np.ndarray, to_lure, substeps: int,
                  kappa: float, gamma: float, drift: str, sign: str, max_age: int, reference_x0: np.ndarray) -> None:
