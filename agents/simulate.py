@@ -51,13 +51,13 @@ def batch_groups(exp: Experiment, nodes: list[AgentNode]) -> list[Batch]:
     return out
 
 
-def closed_team(exp: Experiment, nodes: list[AgentNode], groups: list[Batch], channel: Channel, diag: list) -> Batch | None:
+def closed_team(exp: Experiment, nodes: list[AgentNode], groups: list[Batch], channel: Channel) -> Batch | None:
     """The batch that is the whole team when it is closed: one batch of every agent,
-    static sensors, a perfect channel, no Byzantine agent, no diagnostics; then each round
-    is one :meth:`~estimation.batching.Batch.step_closed` call (the same maths without
-    the per-message bookkeeping)."""
+    static sensors, a perfect channel, no Byzantine agent; then each round is one
+    :meth:`~estimation.batching.Batch.step_closed` call (the same maths without the
+    per-message bookkeeping)."""
     if (len(groups) != 1 or groups[0].agents != list(range(exp.N)) or not channel.perfect or exp.byzantine
-            or not exp.static or diag or any(n.strategy is not None for n in nodes)):
+            or not exp.static or any(n.strategy is not None for n in nodes)):
         return None
     return groups[0]
 
@@ -187,7 +187,7 @@ def simulate(
     groups = batch_groups(exp, nodes) if batched else []
     in_batch = {i for g in groups for i in g.agents}
     singles = [i for i in order if i not in in_batch]
-    closed = closed_team(exp, nodes, groups, channel, diag) if batched else None
+    closed = closed_team(exp, nodes, groups, channel) if batched else None
     est_out = np.empty((N, n))
     traj = np.empty((K + 1, N, n)) if keep_trajectories else None
     truth = np.empty((K + 1, n)) if keep_trajectories else None

@@ -26,6 +26,8 @@ Contract (what makes the batched simulator equal to the per-agent one):
   round ``k - 1`` (nothing at ``k = 0``); ``y`` is the plant's whole stacked measurement
   of round ``k`` and :meth:`Batchable.batch` was told each member's rows. The default
   builds those inboxes and calls :meth:`step`.
+* After every step each member's diagnostics (``diagnostics()``, ``flagged``) read as
+  after its own ``step`` (the simulator reads them from the members every round).
 * :meth:`Batch.sync` writes the stacked state back into the member objects (the
   simulator calls it after the last round, so ``est.estimate`` reads the end state).
 """

@@ -294,7 +294,14 @@ class ConsensusNode:
             raise DesignError(f"phi must have shape {self.shape}, got {phi.shape}")
         if self._k is not None and k != self._k + 1:
             raise DesignError(f"rounds must be consecutive: got {k} after {self._k}")
-        g = self.gains
+        u, w = self.innovations(k)
+        self._J, self._b, self._eta = consensus_update(self._J, self._b, u, w, phi, self._Ahat_T, self.gains)
+        self._k = k
+        return np.concatenate([self._J.ravel(), self._eta.ravel()])
+
+    def innovations(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(u, w)`` of round ``k``: ``sum_j a_ij (J_i - J_j Ahat^tau)`` and the same for ``eta``
+        over the held neighbour values (stamped ``k - 1 - tau``, none newer than ``k - 1``)."""
         u = np.zeros(self.shape)
         w = np.zeros(self.shape)
         for j, a in self._w.items():
@@ -304,9 +311,15 @@ class ConsensusNode:
             P = self._power_T(k - 1 - held[0])
             u += a * (self._J - held[1] @ P)
             w += a * (self._eta - held[2] @ P)
-        A_T = self._Ahat_T
-        self._J = ((1.0 - g.k_phi) * self._J - 2.0 * g.k_I * w) @ A_T + g.k_phi * phi
-        self._b = (self._b + g.k_I * u) @ A_T
-        self._eta = g.k_P * self._b + g.k_I * (u @ A_T)
-        self._k = k
-        return np.concatenate([self._J.ravel(), self._eta.ravel()])
+        return u, w
+
+
+def consensus_update(J: np.ndarray, b: np.ndarray, u: np.ndarray, w: np.ndarray, phi: np.ndarray, A_T: np.ndarray,
+                     g: ConsensusGains) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One round of eqs. (6)-(10) given the innovations ``u``, ``w``: the new ``(J, b, eta)``.
+
+    Arrays ``(..., v, m)`` (one node, or a stack of nodes); ``A_T`` is ``Ahat^T``."""
+    J = ((1.0 - g.k_phi) * J - 2.0 * g.k_I * w) @ A_T + g.k_phi * phi
+    b = (b + g.k_I * u) @ A_T
+    eta = g.k_P * b + g.k_I * (u @ A_T)
+    return J, b, eta

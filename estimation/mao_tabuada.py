@@ -53,6 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .base import Inbox
+from .batching import Batch, Batchable
 from .dynamic_consensus import ConsensusGains, ConsensusNode, design_consensus_gains
 from .errors import DesignError, NumericalError
 from .secure_decoder import SecureDecoder, least_squares_decode
@@ -304,7 +305,7 @@ def check_report(design: MaoTabuadaDesign, *, x0_norm: float | None = None) -> d
     return out
 
 
-class MaoTabuadaEstimator:
+class MaoTabuadaEstimator(Batchable):
     """Per-node estimator (interface of :mod:`estimation.base`).
 
     Parameters
@@ -353,18 +354,32 @@ class MaoTabuadaEstimator:
         """``p J_i``, this node's copy of ``(D (x) I_n) Y``; ``(v, n)``."""
         return self.design.p * self._cons.average
 
+    def _measurement_value(self, k: int, measurement: np.ndarray | None) -> float | None:
+        """The scalar reading of round ``k`` (None: none), checked against the signal limit."""
+        if measurement is None:
+            return None
+        m = np.asarray(measurement, dtype=float).ravel()
+        if m.shape != (1,):
+            raise DesignError(f"node {self.node}: expected one scalar measurement, got shape {m.shape}")
+        if not np.isfinite(m[0]) or abs(m[0]) > SIGNAL_LIMIT:
+            raise NumericalError(
+                f"node {self.node}, round {k}: measurement {m[0]:g} beyond the signal limit "
+                f"{SIGNAL_LIMIT:g}; the horizon exceeds safe_horizon()"
+            )
+        return float(m[0])
+
+    def batch_key(self) -> tuple:
+        return (MaoTabuadaEstimator, id(self.design), self.decoder)
+
+    @classmethod
+    def batch(cls, members, **kw) -> Batch:
+        """Every node's consensus and decoder stacked (:class:`estimation.mao_batch.MaoBatch`)."""
+        from .mao_batch import MaoBatch
+
+        return MaoBatch(members, **kw)
+
     def step(self, k: int, measurement: np.ndarray | None, inbox: Inbox) -> np.ndarray:
-        y = None
-        if measurement is not None:
-            m = np.asarray(measurement, dtype=float).ravel()
-            if m.shape != (1,):
-                raise DesignError(f"node {self.node}: expected one scalar measurement, got shape {m.shape}")
-            if not np.isfinite(m[0]) or abs(m[0]) > SIGNAL_LIMIT:
-                raise NumericalError(
-                    f"node {self.node}, round {k}: measurement {m[0]:g} beyond the signal limit "
-                    f"{SIGNAL_LIMIT:g}; the horizon exceeds safe_horizon()"
-                )
-            y = float(m[0])
+        y = self._measurement_value(k, measurement)
         if self._k is not None and k <= self._k:
             raise DesignError(f"node {self.node}: rounds must increase, got {k} after {self._k}")
         if self._k is not None:

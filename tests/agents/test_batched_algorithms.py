@@ -20,6 +20,8 @@ from agents.simulate import batch_groups, closed_team, make_channel, make_nodes,
 SCEN = Path(__file__).resolve().parents[2] / "scenarios"
 REL = 1e-12
 BYZ_LKS = 'attacks=[{target="agent", agents=[2], kind="constant", value=5.0}]'
+BYZ_MAO = ('attacks=[{target="sensor", sensors=[3, 6], kind="trajectory", x0_attack=[-2.0, 1.5, -1.0, 2.5]}, '
+           '{target="agent", agents=[2], kind="constant", value=5.0}]')
 BYZ_INV = 'attacks=[{target="agent", agents=[3], kind="constant", value=50.0}]'
 CHANNEL = ("network.channel.drop_p=0.3", "network.channel.delay_max=2")
 
@@ -32,6 +34,10 @@ CASES = [
     ("lee_kim_shim.toml", ("run.duration=8", 'estimator.sign="held"'), "rel", True),
     ("lee_kim_shim.toml", ("run.duration=8", *CHANNEL, BYZ_LKS), "rel", False),
     ("lee_kim_shim_nonresilient.toml", ("run.duration=8", *CHANNEL), "rel", False),
+    # Mao-Tabuada: windows, consensus (6)-(10) and the secure decoder; the least-squares baseline
+    ("mao_tabuada.toml", ("run.rounds=200",), "exact", True),
+    ("mao_tabuada.toml", ("run.rounds=200", *CHANNEL, BYZ_MAO), "exact", False),
+    ("mao_tabuada.toml", ("run.rounds=120", 'estimator.decoder="least_squares"'), "exact", True),
     # the inverter line: the substation's bank of observers (9) and the median (5); the
     # distributed median over a perfect channel, and with drops, delays and a Byzantine agent
     ("inverters_median.toml", ("run.duration=4",), "rel", True),
@@ -50,7 +56,7 @@ def test_batched_equals_per_agent(name: str, overrides: tuple[str, ...], agree: 
     nodes = make_nodes(exp, make_channel(exp))
     groups = batch_groups(exp, nodes)
     assert sum(len(g.agents) for g in groups) == exp.N - len(exp.byzantine), "every regular agent is batched"
-    assert (closed_team(exp, nodes, groups, make_channel(exp), []) is not None) == closed
+    assert (closed_team(exp, nodes, groups, make_channel(exp)) is not None) == closed
     a = simulate(exp, keep_trajectories=True, batched=True)
     b = simulate(exp, keep_trajectories=True, batched=False)
     regular = a.regular
@@ -61,6 +67,16 @@ def test_batched_equals_per_agent(name: str, overrides: tuple[str, ...], agree: 
         scale = np.max(np.abs(eb))
         assert np.max(np.abs(ea - eb)) <= REL * scale
     assert a.links == b.links
+    # the diagnostics and attack flags the monitor read from the members
+    ma, mb = a.monitor, b.monitor
+    assert sorted(ma.diagnostics) == sorted(mb.diagnostics)
+    for name in mb.diagnostics:
+        ref = mb.diagnostics[name]
+        tol = REL * max(1.0, float(np.nanmax(np.abs(ref))) if np.isfinite(ref).any() else 1.0)
+        np.testing.assert_allclose(ma.diagnostics[name], ref, rtol=0, atol=tol, equal_nan=True)
+    assert (ma.flags is None) == (mb.flags is None)
+    if mb.flags is not None:
+        np.testing.assert_array_equal(ma.flags, mb.flags)
     # the runs are not trivial: estimates move, and agents differ
     assert np.ptp(eb[:, 0], axis=0).max() > 0
     assert eb.shape[1] == 1 or np.ptp(eb[-1], axis=0).max() > 0
