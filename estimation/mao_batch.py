@@ -121,11 +121,10 @@ class MaoBatch(Batch):
             xs, supports = np.array([r.x for r in out]), [r.support for r in out]
         Aw = des.A_window
         X = np.array([Aw @ x for x in xs])
-        from .mao_tabuada import SIGNAL_LIMIT
-
+        limit = self.members[0].signal_limit
         for m, x, sup in zip(self.members, X, supports):
-            if not np.all(np.isfinite(x)) or np.max(np.abs(x), initial=0.0) > SIGNAL_LIMIT:
-                raise NumericalError(f"node {m.node}, round {k}: estimate beyond the signal limit {SIGNAL_LIMIT:g}")
+            if not np.all(np.isfinite(x)) or np.max(np.abs(x), initial=0.0) > limit:
+                raise NumericalError(f"node {m.node}, round {k}: estimate beyond the signal limit {limit:g}")
             m._x, m.support, m._k = x, sup, k
         self._k = k
         self._X_now = X

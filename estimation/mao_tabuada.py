@@ -320,6 +320,8 @@ class MaoTabuadaEstimator(Batchable):
     shape ``(2 v n,)``.
     """
 
+    signal_limit = SIGNAL_LIMIT  #: what an estimate may reach (see the module docstring)
+
     def __init__(self, design: MaoTabuadaDesign, *, node: int, decoder: str = "secure") -> None:
         if not 0 <= int(node) < design.p:
             raise DesignError(f"node must be in 0..{design.p - 1}, got {node}")

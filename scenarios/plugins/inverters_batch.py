@@ -19,6 +19,12 @@ from estimation.lure_batch import StackedLureObservers, sign_median_stacked
 from estimation.median_bank import median_fuse
 
 
+def _finite_vector(value: Any, size: int) -> bool:
+    """What the distributed agent accepts from a neighbour: a finite ``(size,)`` array."""
+    v = np.asarray(value)
+    return v.shape == (size,) and bool(np.all(np.isfinite(v)))
+
+
 class SerialBatch(Batch):
     """Members stepped one by one (modes without a stacked form)."""
 
@@ -74,8 +80,6 @@ class DistributedBatch(Batch):
         self._k = ms[0]._solver._k
 
     def step(self, k, measurements, inboxes) -> list[np.ndarray]:
-        from .inverters import _valid
-
         y = None if all(v is None for v in measurements) else \
             np.array([np.nan if v is None else float(np.asarray(v, dtype=float).reshape(-1)[0]) for v in measurements])
         Z = self._obs.step(k, y).copy()  # every member's local estimate z_i[k]
@@ -88,7 +92,7 @@ class DistributedBatch(Batch):
             mean = np.zeros((M, n))
             for a, inbox in enumerate(inboxes):  # the per-agent filter and mean
                 nb = [np.asarray(r.value, dtype=float) for r in (inbox or {}).values()
-                      if _valid(r.value, n) and r.stamp >= oldest]
+                      if _finite_vector(r.value, n) and r.stamp >= oldest]
                 if nb:
                     d[a] = len(nb)
                     mean[a] = np.sum(nb, axis=0) / len(nb)
