@@ -50,6 +50,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from .base import Inbox, Received
+from .batching import Batch, Batchable
 from .errors import DesignError
 from .hinf_lmi import ResilientProblem, node_riccati_data
 from .hinf_riccati import RiccatiFlow, difference_gains, filter_gains, split_detector_gains
@@ -81,8 +82,10 @@ def first_order_attack_model(*, gain: float, pole: float) -> tuple[np.ndarray, n
     )
 
 
-class _NodeBase:
-    """Shared state and round logic of the controlled node and the baseline."""
+class _NodeBase(Batchable):
+    """Shared state and round logic of the controlled node and the baseline.
+
+    Batchable: the nodes of a team step together in :class:`estimation.ugrinovskii_batch.UgrinovskiiBatch`."""
 
     _controlled = True
 
@@ -136,6 +139,15 @@ class _NodeBase:
         self._ref: tuple = ()
         self.rejected = 0
         self.refreshes = 0
+
+    def batch_key(self) -> tuple:
+        return (type(self), id(self._pb), self.dt, self._controlled)
+
+    @classmethod
+    def batch(cls, members, **kw) -> Batch:
+        from .ugrinovskii_batch import UgrinovskiiBatch
+
+        return UgrinovskiiBatch(members, **kw)
 
     # -- sizes and read-only views ------------------------------------------------------
     @property
@@ -282,6 +294,7 @@ class _NodeBase:
         if self._k is None:
             self._k = k
             self._inputs(measurement, inbox)  # record first messages
+            self._after_step()
             return self._payload()
         if k <= self._k:
             raise DesignError(f"node {self.node}: round {k} after round {self._k}; rounds must increase")
@@ -293,7 +306,11 @@ class _NodeBase:
             if self._controlled:
                 self._det.step()
             self._k += 1
+        self._after_step()
         return self._payload()
+
+    def _after_step(self) -> None:
+        """Called at the end of every :meth:`step` (the runtime updates its attack flag)."""
 
 
 class UgrinovskiiNode(_NodeBase):

@@ -554,8 +554,7 @@ class _Runtime:
             off += pj[a]
         return v
 
-    def step(self, k, measurement, inbox):
-        out = super().step(k, measurement, inbox)
+    def _after_step(self) -> None:
         t = self.t
         above = t >= self.flag_from - 1e-9 * max(1.0, self.flag_from) and \
             bool(np.max(np.abs(self.attack_indicator), initial=0.0) > self.threshold)
@@ -565,7 +564,6 @@ class _Runtime:
             self._flagged = t - self._above_since >= self.hold - 1e-9 * max(1.0, self.hold)
         else:
             self._above_since, self._flagged = None, False
-        return out
 
     @property
     def flagged(self) -> bool:
