@@ -54,6 +54,7 @@ class Plan:
         point, ``run.rounds`` and worker processes
     sweep_dask : also measure the sweep on a Dask ``LocalCluster`` (when the ``cluster``
         extra is installed; its start alone takes seconds, so not in the smoke plan)
+    scenario_repeats : timed runs of each paper scenario (1: their short ``--quick`` form)
     """
 
     sim: dict[int, tuple[int, int]]
@@ -64,13 +65,16 @@ class Plan:
     sweep_rounds: int
     sweep_jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
     sweep_dask: bool = True
+    #: timed runs of each paper scenario (benchmarks/scenario_bench.py; 1: the short --quick runs)
+    scenario_repeats: int = 3
 
     def settings(self) -> dict[str, Any]:
         return {"sim_rounds": {str(k): v[0] for k, v in self.sim.items()},
                 "sim_repeats": {str(k): v[1] for k, v in self.sim.items()},
                 "run_processes": list(self.run_processes), "run_rounds": self.run_rounds,
                 "sweep_drop_ps": list(self.sweep_drop_ps), "sweep_seeds": self.sweep_seeds,
-                "sweep_rounds": self.sweep_rounds, "sweep_jobs": self.sweep_jobs, "sweep_dask": self.sweep_dask}
+                "sweep_rounds": self.sweep_rounds, "sweep_jobs": self.sweep_jobs, "sweep_dask": self.sweep_dask,
+                "scenario_repeats": self.scenario_repeats}
 
     def limited(self, max_agents: int | None) -> "Plan":
         """This plan without the simulator teams and ``rse run`` teams larger than ``max_agents``."""
@@ -83,7 +87,7 @@ class Plan:
 FULL = Plan(sim={16: (200, 5), 64: (100, 3), 256: (40, 3), 1024: (20, 2)}, run_processes=(2, 4, 8, 16, 32),
             run_rounds=300, sweep_drop_ps=(0.1, 0.2, 0.3, 0.4), sweep_seeds=2, sweep_rounds=100)
 QUICK = Plan(sim={16: (10, 2)}, run_processes=(2,), run_rounds=20, sweep_drop_ps=(0.1, 0.3), sweep_seeds=1,
-             sweep_rounds=10, sweep_jobs=1, sweep_dask=False)
+             sweep_rounds=10, sweep_jobs=1, sweep_dask=False, scenario_repeats=1)
 
 
 @dataclass
@@ -120,6 +124,14 @@ def steps(plan: Plan, sections: list[str]) -> list[Step]:
             repeats = repeats if want_sim else 0
             todo.append(Step(name, f"{name}: simulator, {agents} agents, {max(1, repeats)} x {rounds + 1} rounds",
                              sim_step(agents, rounds, repeats)))
+    if want_sim:
+        from . import scenario_bench
+
+        for stem, full, short in scenario_bench.PAPER:
+            ov = short if plan.scenario_repeats <= 1 else full
+            todo.append(Step("simulate", f"simulate: {stem}, {plan.scenario_repeats} run(s)",
+                             lambda stem=stem, ov=ov: scenario_bench.scenario_figures(
+                                 scenario_bench.measure_scenario(stem, ov, plan.scenario_repeats))))
     if "run" in sections:
         for procs in plan.run_processes:
             todo.append(Step("run", f"run: rse run and Zenoh skeleton, {procs} agent processes, {plan.run_rounds} rounds",

@@ -250,7 +250,8 @@ class _ModalFusion(Batchable):
         self._loc: int | None = None
         self._y: np.ndarray | None = None
         self.rejected = 0  # messages skipped for a wrong shape
-        self._mem_val = np.zeros((len(nb), self._F.size))
+        # the newest value of every neighbour: SW-LFRE's memory (LFRE is memoryless)
+        self._mem_val = np.zeros((len(nb) if self._sliding else 0, self._F.size))
         self._mem_stamp = np.zeros(len(nb), dtype=np.int64)
         self._mem_has = np.zeros(len(nb), dtype=bool)
 
