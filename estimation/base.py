@@ -18,7 +18,8 @@ Conventions (both drivers rely on them):
   delivered by round ``k``; it may be empty (all dropped). Messages published in round
   ``k - 1`` are the freshest an agent can have in round ``k``.
 * ``step`` returns the outgoing payload (a float array) stamped ``k``. An estimator never
-  mutates the arrays it receives and never hands out its internal arrays.
+  mutates the arrays it receives and never hands out an internal array it may still
+  modify (a payload is a copy, or a read-only array the estimator never writes again).
 """
 
 from __future__ import annotations
