@@ -211,7 +211,12 @@ def simulate(
             est_k = est_out
             for g in groups:  # every batch in one call, then the agents stepped alone
                 outs = g.step(k, [measurement(i, k, y) for i in g.agents], [nodes[i].open_round(k) for i in g.agents])
-                est_out[g.agents] = g.estimates()
+                got = g.estimates()
+                if isinstance(got, list):
+                    for i, e in zip(g.agents, got):
+                        est_out[i] = e
+                else:
+                    est_out[g.agents] = got
                 for i, out in zip(g.agents, outs):
                     deliver(nodes[i], k, out, targets[i])
             for i in singles:

@@ -8,7 +8,7 @@ objects; the simulator then calls the batch once per round instead of each agent
 
     batch = LeeKimShim.batch(estimators, in_neighbours=...)   # member-local indices
     payloads = batch.step(k, measurements, inboxes)            # any channel, any inbox
-    estimates = batch.estimates()                              # (M, n) x_hat[k] of the members
+    estimates = batch.estimates()                              # x_hat[k] of the members, (M, n)
 
     X = batch.step_closed(k, y)    # the members hear only each other, perfect channel
 
@@ -68,18 +68,20 @@ class Batch(ABC):
         """Round ``k`` of every member; returns their payloads (member order)."""
 
     @abstractmethod
-    def estimates(self) -> np.ndarray:
-        """``(M, n)`` the members' estimates ``x_hat[k]`` after the last step (a view or copy)."""
+    def estimates(self) -> np.ndarray | list[np.ndarray]:
+        """The members' estimates ``x_hat[k]`` after the last step: an ``(M, n)`` array, or
+        a list of ``M`` read-only ``(n,)`` arrays (no stacked copy for large teams)."""
 
     def step_closed(self, k: int, y: np.ndarray) -> np.ndarray:
-        """Round ``k`` of the members alone over a perfect channel; returns :meth:`estimates`."""
+        """Round ``k`` of the members alone over a perfect channel; returns the ``(M, n)`` estimates."""
         if self.rows is None:
             raise ValueError("step_closed needs every member's measurement rows (static sensors)")
         last = self._last
         inboxes = [{} if last is None else
                    {self.agents[j]: Received(self.agents[j], k - 1, last[j]) for j in nb} for nb in self.in_neighbours]
         self._last = self.step(k, [y[r] for r in self.rows], inboxes)
-        return self.estimates()
+        got = self.estimates()
+        return np.stack(got) if isinstance(got, list) else got
 
     def sync(self) -> None:
         """Write the stacked state back into the member objects (default: nothing to write)."""

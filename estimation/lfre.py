@@ -236,7 +236,7 @@ class _ModalFusion(Batchable):
         nb = sorted({l for key in groups for l in key})
         self._nb = np.array(nb, dtype=int)
         self._col = {l: c for c, l in enumerate(nb)}
-        self._F = np.array(F, dtype=np.int32)  # indices of up to 2^31 modes, half the memory of int64
+        self._F = np.asarray(des.fused[agent], dtype=np.intp)  # the design's read-only array (no copy per agent)
         member = np.zeros((len(F), len(nb)), dtype=bool)
         for key, rows in groups.items():
             member[np.ix_(rows, [self._col[l] for l in key])] = True
@@ -484,10 +484,10 @@ class FusionBatch(Batch):
             out += [m.finish(k, y, g) for m, y, g in zip(ms[sl], measurements[sl], fused)]
         return out
 
-    def estimates(self) -> np.ndarray:
+    def estimates(self) -> np.ndarray | list[np.ndarray]:
         ms = self.members
-        if ms[0].design.modal.is_identity:  # x_hat = z: no per-agent copies
-            return np.stack([m._z for m in ms])
+        if ms[0].design.modal.is_identity:  # x_hat = z: the read-only modal estimates themselves
+            return [m._z for m in ms]
         return np.array([m.estimate for m in ms])
 
 
