@@ -55,6 +55,8 @@ class Plan:
     sweep_dask : also measure the sweep on a Dask ``LocalCluster`` (when the ``cluster``
         extra is installed; its start alone takes seconds, so not in the smoke plan)
     scenario_repeats : timed runs of each paper scenario (1: their short ``--quick`` form)
+    scenarios : which paper scenarios (None: all; ``--quick`` runs Lee-Kim-Shim only, the
+        others' designs take seconds to load)
     """
 
     sim: dict[int, tuple[int, int]]
@@ -67,6 +69,8 @@ class Plan:
     sweep_dask: bool = True
     #: timed runs of each paper scenario (benchmarks/scenario_bench.py; 1: the short --quick runs)
     scenario_repeats: int = 3
+    #: the paper scenarios measured (None: every one of scenario_bench.PAPER)
+    scenarios: tuple[str, ...] | None = None
 
     def settings(self) -> dict[str, Any]:
         return {"sim_rounds": {str(k): v[0] for k, v in self.sim.items()},
@@ -74,7 +78,8 @@ class Plan:
                 "run_processes": list(self.run_processes), "run_rounds": self.run_rounds,
                 "sweep_drop_ps": list(self.sweep_drop_ps), "sweep_seeds": self.sweep_seeds,
                 "sweep_rounds": self.sweep_rounds, "sweep_jobs": self.sweep_jobs, "sweep_dask": self.sweep_dask,
-                "scenario_repeats": self.scenario_repeats}
+                "scenario_repeats": self.scenario_repeats,
+                "scenarios": list(self.scenarios) if self.scenarios is not None else None}
 
     def limited(self, max_agents: int | None) -> "Plan":
         """This plan without the simulator teams and ``rse run`` teams larger than ``max_agents``."""
@@ -87,7 +92,7 @@ class Plan:
 FULL = Plan(sim={16: (200, 5), 64: (100, 3), 256: (40, 3), 1024: (20, 2)}, run_processes=(2, 4, 8, 16, 32),
             run_rounds=300, sweep_drop_ps=(0.1, 0.2, 0.3, 0.4), sweep_seeds=2, sweep_rounds=100)
 QUICK = Plan(sim={16: (10, 2)}, run_processes=(2,), run_rounds=20, sweep_drop_ps=(0.1, 0.3), sweep_seeds=1,
-             sweep_rounds=10, sweep_jobs=1, sweep_dask=False, scenario_repeats=1)
+             sweep_rounds=10, sweep_jobs=1, sweep_dask=False, scenario_repeats=1, scenarios=("lee_kim_shim",))
 
 
 @dataclass
@@ -128,6 +133,8 @@ def steps(plan: Plan, sections: list[str]) -> list[Step]:
         from . import scenario_bench
 
         for stem, full, short in scenario_bench.PAPER:
+            if plan.scenarios is not None and stem not in plan.scenarios:
+                continue
             ov = short if plan.scenario_repeats <= 1 else full
             todo.append(Step("simulate", f"simulate: {stem}, {plan.scenario_repeats} run(s)",
                              lambda stem=stem, ov=ov: scenario_bench.scenario_figures(

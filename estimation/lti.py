@@ -82,8 +82,31 @@ class ContinuousLTI:
 
     @property
     def C(self) -> np.ndarray:
-        """All banks stacked, ``(m, n)``."""
+        """All banks stacked, ``(m, n)`` (the array itself when the banks are consecutive row
+        views of one array, :func:`stacked_banks`; read-only then)."""
+        base = self.banks[0].base if self.banks else None
+        if base is not None and base.ndim == 2 and base.shape[0] == sum(b.shape[0] for b in self.banks):
+            row = 0
+            for b in self.banks:
+                if (b.base is not base or b.shape[1] != base.shape[1] or b.strides != base.strides
+                        or b.__array_interface__["data"][0] != base[row:].__array_interface__["data"][0]):
+                    break
+                row += b.shape[0]
+            else:
+                return base
         return np.vstack(self.banks)
+
+
+def stacked_banks(banks: "list[np.ndarray]") -> tuple[np.ndarray, ...]:
+    """``banks`` as consecutive row views of one read-only stacked array (one copy of the
+    rows instead of two when :attr:`ContinuousLTI.C` is read: a large plant's many banks)."""
+    C = np.vstack(banks) if banks else np.zeros((0, 0))
+    C.setflags(write=False)
+    out, row = [], 0
+    for b in banks:
+        out.append(C[row:row + b.shape[0]])
+        row += b.shape[0]
+    return tuple(out)
 
 
 def three_inertia(*, J: float = 0.01, b: float = 0.007, k: float = 1.37) -> ContinuousLTI:

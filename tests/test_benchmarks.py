@@ -23,6 +23,7 @@ from tests.conftest import ROOT, SCENARIOS
 QUICK_FIGURES = {
     "simulate/16 agents": ["build_s", "setup_s", "loop_s", "agent_rounds_per_s", "fused_values_per_s",
                            "ns_per_fused_value"],
+    "simulate/lee_kim_shim": ["agent_rounds_per_s"],
     "memory/16 agents": ["rss_peak_mb", "rss_team_mb", "rss_per_agent_kb"],
     "run/2 procs": ["rounds_per_s", "agent_rounds_per_s", "skeleton_rounds_per_s", "runtime_vs_skeleton",
                     "agent_rss_max_mb", "agent_rss_median_mb"],
@@ -44,6 +45,20 @@ def quick(tmp_path_factory):
     assert res.returncode == 0, res.stdout + res.stderr
     assert "Traceback" not in res.stderr
     return path, res, json.loads(path.read_text())
+
+
+def test_the_full_suite_measures_every_paper_scenario_and_the_1024_agent_team():
+    from benchmarks.scenario_bench import PAPER
+    from benchmarks.suite import FULL, steps
+
+    labels = [s.label for s in steps(FULL, ["simulate", "memory"])]
+    stems = {p.stem for p in SCENARIOS.glob("*.toml")}
+    for stem in ("lee_kim_shim", "mitra_cells", "mao_tabuada", "ugrinovskii_biasing", "inverters_median",
+                 "inverters_distributed"):
+        assert stem in stems and stem in {p[0] for p in PAPER}
+        assert any(f"simulate: {stem}," in label for label in labels), stem
+    assert any("1024 agents" in label for label in labels)
+    assert ("run.dt=0.001",) == dict((p[0], p[1]) for p in PAPER)["lee_kim_shim"]
 
 
 @pytest.mark.multiprocess
@@ -76,7 +91,7 @@ def test_quick_run_writes_every_figure_with_sane_values(quick):
     # the checkout's commit (not compared with HEAD: other commits may land while the suite runs)
     assert re.fullmatch(r"[0-9a-f]{40}", doc["git"]["commit"]) and isinstance(doc["git"]["dirty"], bool)
     assert doc["settings"]["run_processes"] == [2]
-    assert [s["step"].split(":")[0] for s in doc["steps"]] == ["simulate", "run", "sweep"]
+    assert [s["step"].split(":")[0] for s in doc["steps"]] == ["simulate", "simulate", "run", "sweep"]
     assert all(s["elapsed_s"] > 0 for s in doc["steps"])
 
 

@@ -11,7 +11,7 @@ from pydantic import Field
 from estimation import cells as cell_models
 from estimation import lfre
 from estimation.errors import DesignError, ScenarioError
-from estimation.lti import ContinuousLTI
+from estimation.lti import ContinuousLTI, stacked_banks
 from estimation.mss import effective_erasure_probability, max_erasure_probability, mss_margin, robustness_multiplier
 from estimation.patrols import Patrol
 from estimation.robustness import strong_robustness
@@ -68,8 +68,9 @@ def _cell_plant(sc: "Scenario", source: str, defaults: dict) -> PlantModel:
     except DesignError as exc:
         raise ScenarioError(f"plant: {exc}", source=source) from None
     n = m.A.shape[0]
-    lti = ContinuousLTI(A=m.A, B=np.zeros((n, 0)), banks=tuple(np.atleast_2d(c) for c in m.loc_C),
-                        state_names=tuple(f"x{i + 1}" for i in range(n)))
+    # every location's rows as views of one stacked C (the plant's C is that array, no copy)
+    banks = stacked_banks([np.atleast_2d(c) for c in m.loc_C])
+    lti = ContinuousLTI(A=m.A, B=np.zeros((n, 0)), banks=banks, state_names=tuple(f"x{i + 1}" for i in range(n)))
     blocks = {name: np.flatnonzero(m.state_block == b) for b, name in enumerate(m.block_names)}
     return PlantModel(lti=lti, discrete=True, positions=np.asarray(m.positions), x0=np.asarray(m.x0),
                       blocks=blocks, cell_of_location=np.asarray(m.loc_cell))
