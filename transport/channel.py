@@ -64,7 +64,7 @@ class Channel:
             delay[u[:, 0] < self.drop_p] = -1
         # a compact array of machine ints (indexing gives a Python int, as a list does):
         # 8 k links of a 1,024-agent team held 64 MB of lists
-        return array("h" if self.delay_max < 2**15 else "q", delay.tolist())
+        return array("b" if self.delay_max < 2**7 else "q", delay.tolist())
 
     def fate(self, sender: int, receiver: int, stamp: int) -> int | None:
         """Round from which the message is visible to ``receiver``, or None if lost."""
