@@ -262,8 +262,10 @@ def test_flooding_reference_without_disturbance():
 
 @LMI
 def test_distributed_lockstep_over_the_bus_equals_the_simulator():
-    """The protocol of ``rse run`` (in memory, one role per inverter): same estimates; the
-    experiment and every agent's estimator pickle (they are shipped to the processes)."""
+    """The protocol of ``rse run`` (in memory, one role per inverter): the same estimates as
+    the simulator's per-agent path, bit for bit (the batched path agrees within 1e-12,
+    tests/agents/test_batched_algorithms.py); the experiment and every agent's estimator
+    pickle (they are shipped to the processes)."""
     from agents.api import load_experiment
     from agents.net.roles import RunConfig, run_team_in_memory
     from agents.simulate import make_channel, make_nodes
@@ -271,7 +273,7 @@ def test_distributed_lockstep_over_the_bus_equals_the_simulator():
     for extra in ("estimator.mode=distributed", 'estimator.drift="reference"', "estimator.mode=flooding"):
         ov = ("run.duration=1", "expect=[]", "output.window=[0.0, 1.0]", extra)
         exp, _ = load_experiment(SC / DISTRIBUTED, ov, None)
-        ref = simulate(exp, keep_trajectories=True)
+        ref = simulate(exp, keep_trajectories=True, batched=False)
         exp, _ = load_experiment(SC / DISTRIBUTED, ov, None)
         exp = pickle.loads(pickle.dumps(exp))
         for node in make_nodes(exp, make_channel(exp)):
@@ -342,7 +344,7 @@ def test_median_bank_needs_a_lure_plant():
 @pytest.mark.slow
 def test_rse_run_one_process_per_inverter(tmp_path):
     """``rse run``: plant, monitor and one process per inverter over Zenoh on loopback, in
-    lockstep: the same estimates as ``rse simulate``."""
+    lockstep: the same estimates as the simulator's per-agent path."""
     from tests.conftest import rse
 
     ov = ("run.duration=2", "expect=[]", "output.window=[0.0, 2.0]")
@@ -353,6 +355,6 @@ def test_rse_run_one_process_per_inverter(tmp_path):
             "--deadline", "30", timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     sc, _ = load(SC / DISTRIBUTED, list(ov))
-    ref = simulate(build(sc, source=DISTRIBUTED), keep_trajectories=True)
+    ref = simulate(build(sc, source=DISTRIBUTED), keep_trajectories=True, batched=False)
     np.testing.assert_array_equal(np.load(out / "estimates.npy"), ref.estimates)
     assert json.loads((out / "summary.json").read_text())["agents"].keys() == {"1", "2", "3", "4", "5"}
