@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 
+from estimation.base import Diagnostics, Flags
+
 if TYPE_CHECKING:  # an agent process reads diagnostics without the scenario layer
     from scenarios.build import Experiment
 
@@ -52,16 +54,16 @@ def plot_rows(exp: Experiment) -> list[tuple[str, np.ndarray, list[int]]]:
 
 
 def has_diagnostics(estimator: Any) -> bool:
-    """Whether ``estimator`` exposes ``diagnostics()`` or ``flagged`` (see the module docstring)."""
-    return callable(getattr(estimator, "diagnostics", None)) or hasattr(type(estimator), "flagged")
+    """Whether ``estimator`` declares :class:`~estimation.base.Diagnostics` or
+    :class:`~estimation.base.Flags` (see the module docstring)."""
+    return isinstance(estimator, (Diagnostics, Flags))
 
 
 def read_diagnostics(estimator: Any) -> tuple[dict[str, float] | None, bool | None]:
     """``(diagnostics, flagged)`` of ``estimator`` now; ``None`` for what it does not expose."""
-    fn = getattr(estimator, "diagnostics", None)
-    diag = {str(k): float(v) for k, v in fn().items()} if callable(fn) else None
-    flag = getattr(estimator, "flagged", None) if hasattr(type(estimator), "flagged") else None
-    return diag, (None if flag is None else bool(flag))
+    diag = {str(k): float(v) for k, v in estimator.diagnostics().items()} if isinstance(estimator, Diagnostics) else None
+    flag = bool(estimator.flagged) if isinstance(estimator, Flags) else None
+    return diag, flag
 
 
 class Monitor:

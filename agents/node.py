@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from estimation.base import Received
+from estimation.base import EstimatePayload, Received
 from transport.channel import Channel, LinkCounters
 
 
@@ -39,7 +39,7 @@ class AgentNode:
         #: what an omniscient adversary may read (set by the driver for Byzantine agents)
         self.view: Any = None
         #: the estimate itself is the payload (no separate ``estimator.estimate`` call)
-        self.payload_is_estimate = bool(getattr(estimator, "payload_is_estimate", False))
+        self.payload_is_estimate = isinstance(estimator, EstimatePayload)
         self.inbox: dict[int, Received] = {}
         #: indices of the in-neighbours whose message became visible in the current round
         self.arrived: set[int] = set()

@@ -20,6 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from estimation.base import MaskedInputs
 from estimation.batching import Batch, Batchable
 from scenarios.build import Experiment
 from transport.byzantine import Forged
@@ -99,7 +100,7 @@ class SimulatorView:
 
     def others_for(self, receiver: int, sender: int) -> list[np.ndarray]:
         node = self._by_id[receiver]
-        uses = getattr(node.estimator, "uses", None)
+        uses = node.estimator.uses if isinstance(node.estimator, MaskedInputs) else None
         out = []
         for r in node.pending_from_others(self.k, sender):
             v = np.asarray(r.value, dtype=float)

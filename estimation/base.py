@@ -24,6 +24,7 @@ Conventions (both drivers rely on them):
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import Mapping, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
@@ -60,3 +61,42 @@ class Estimator(Protocol):
 
     def step(self, k: int, measurement: np.ndarray | None, inbox: Inbox) -> np.ndarray:
         ...
+
+
+# ---------------------------------------------------------------- optional capabilities
+# An estimator declares what else it offers by inheriting these classes (a nominal
+# declaration: the drivers ask ``isinstance(est, Capability)``, they never probe for
+# attributes). Batching is declared the same way (:class:`estimation.batching.Batchable`).
+
+
+class EstimatePayload:
+    """The published payload is the estimate ``x_hat_i[k]`` itself (shape ``(n,)``): a
+    driver records it without reading ``estimate`` and, in lockstep, may carry it in the
+    agent's done report instead of a second message."""
+
+
+class MaskedInputs(ABC):
+    """The fusion uses only some components of a neighbour's payload: :meth:`uses` says
+    which (an omniscient adversary's view masks the others, as the receiver does)."""
+
+    @abstractmethod
+    def uses(self, sender: int) -> np.ndarray:
+        """``(d,)`` float mask (1.0: component used) of the payload from agent index ``sender``."""
+
+
+class Diagnostics(ABC):
+    """Per-round scalars the monitor records (``diagnostics.parquet``, summary)."""
+
+    @abstractmethod
+    def diagnostics(self) -> dict[str, float]:
+        """Name -> value after the last step (NaN where not defined yet)."""
+
+
+class Flags(ABC):
+    """A local attack detector: :attr:`flagged` after each step (the summary's
+    ``detected_attacks``)."""
+
+    @property
+    @abstractmethod
+    def flagged(self) -> bool:
+        """Whether this agent considers its own measurement or inputs attacked now."""

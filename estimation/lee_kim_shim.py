@@ -42,7 +42,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .base import Inbox
+from .base import EstimatePayload, Inbox
 from .batching import Batch, Batchable
 from .errors import DesignError
 from .graphs import algebraic_connectivity
@@ -213,7 +213,7 @@ def theorem3_bound(des: LKSDesign, Adj: np.ndarray, gamma: float) -> float | Non
     return float((N * n**2 + np.sqrt(n)) * np.sqrt(N) / (gamma * lam2) * np.linalg.norm(M, 2))
 
 
-class LeeKimShim(Batchable):
+class LeeKimShim(Batchable, EstimatePayload):
     """One agent's estimator: partial observer (5) + median coupling (6) / (11) / linear.
 
     Parameters
@@ -230,9 +230,6 @@ class LeeKimShim(Batchable):
         agents leave and join, Section III-C)
     max_degree : int, the largest number of neighbours whose messages can be used
     """
-
-    #: the published payload is the estimate ``x_hat_i[k]`` itself
-    payload_is_estimate = True
 
     def __init__(
         self,

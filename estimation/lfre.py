@@ -51,7 +51,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .base import Inbox
+from .base import Inbox, MaskedInputs
 from .batching import Batch, Batchable
 from .errors import DesignError
 from .modal import ModalForm, modal_form
@@ -207,7 +207,7 @@ def lfre_update(z_prev: np.ndarray, fused: np.ndarray, lam: np.ndarray, *, gap: 
 # ------------------------------------------------------------------------- estimators
 
 
-class _ModalFusion(Batchable):
+class _ModalFusion(Batchable, MaskedInputs):
     """Shared state and round logic of :class:`LFRE` and :class:`SWLFRE`.
 
     Batchable: agents with the same fusion rule and ``f`` are stepped together by

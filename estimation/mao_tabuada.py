@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .base import Inbox
+from .base import Flags, Inbox
 from .batching import Batch, Batchable
 from .dynamic_consensus import ConsensusGains, ConsensusNode, design_consensus_gains
 from .errors import DesignError, NumericalError
@@ -305,7 +305,7 @@ def check_report(design: MaoTabuadaDesign, *, x0_norm: float | None = None) -> d
     return out
 
 
-class MaoTabuadaEstimator(Batchable):
+class MaoTabuadaEstimator(Batchable, Flags):
     """Per-node estimator (interface of :mod:`estimation.base`).
 
     Parameters

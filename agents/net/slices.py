@@ -69,7 +69,7 @@ class AgentSlice:
 def merges(node: Any) -> bool:
     """Whether an agent's lockstep done report carries its broadcast estimate (an honest
     agent whose payload is its estimate: the one message is both)."""
-    return node.strategy is None and bool(getattr(node, "payload_is_estimate", False))
+    return node.strategy is None and bool(node.payload_is_estimate)
 
 
 def payload_shape(estimator: Any, n: int) -> tuple[int, ...]:

@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from estimation.base import MaskedInputs
+
 if TYPE_CHECKING:
     from scenarios.build import Experiment
 
@@ -62,7 +64,7 @@ def view_topology(exp: Experiment, me: int, estimators: dict[int, Any] | None = 
     masks: dict[int, dict[int, Any]] = {}
     for j in out:
         est = estimators.get(j) if estimators is not None else exp.make_estimator(index_of[j])
-        uses = getattr(est, "uses", None)
+        uses = est.uses if isinstance(est, MaskedInputs) else None
         if uses is not None:
             masks[j] = {s: uses(index_of[s]) for s in before[j]}
     return ViewTopology(me, tuple(ids), out, before, needed, masks)

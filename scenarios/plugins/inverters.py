@@ -41,6 +41,7 @@ import numpy as np
 from pydantic import Field
 
 from estimation import graphs
+from estimation.base import EstimatePayload
 from estimation.batching import Batch, Batchable
 from estimation.distributed_median import FloodingMedian, SignMedianAgent
 from estimation.errors import DesignError, ScenarioError
@@ -354,13 +355,11 @@ def _valid(value: Any, size: int) -> bool:
     return v.shape == (size,) and bool(np.all(np.isfinite(v)))
 
 
-class DistributedMedianEstimator(Batchable):
+class DistributedMedianEstimator(Batchable, EstimatePayload):
     """One inverter (mode distributed): its own observer (9) on its own sensor, and the
     sign-based distributed median of the team's estimates. Publishes and reports ``xi_i``;
     ``local_estimate`` is its observer's ``x_hat^i``. Neighbour messages that are not a
     finite ``(n,)`` array are ignored. Batchable (:mod:`.inverters_batch`)."""
-
-    payload_is_estimate = True
 
     def batch_key(self) -> tuple:
         o, kw = self._obs, self._solver._kw

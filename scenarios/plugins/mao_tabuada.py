@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
+from estimation.base import Diagnostics
 from estimation.dynamic_consensus import ConsensusGains, design_consensus_gains, disagreement_spectral_radius
 from estimation.errors import DesignError, ScenarioError
 from estimation.mao_tabuada import (
@@ -100,7 +101,7 @@ class MaoTabuadaSection(Strict):
 ESTIMATOR = MaoTabuadaSection
 
 
-class MaoTabuadaAgent(MaoTabuadaEstimator):
+class MaoTabuadaAgent(MaoTabuadaEstimator, Diagnostics):
     """The core estimator with the runtime's optional report hooks (:mod:`agents.monitor`):
     ``flagged`` (the latched local sanity check, inherited) and :meth:`diagnostics`.
 

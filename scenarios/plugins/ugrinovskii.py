@@ -39,6 +39,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from estimation import graphs
+from estimation.base import Diagnostics, Flags
 from estimation.errors import DesignError, NumericalError, ScenarioError
 from estimation.hinf_lmi import ResilientProblem, closed_form_design, design as lmi_design, node_riccati_data
 from estimation.hinf_riccati import RiccatiFlow
@@ -519,7 +520,7 @@ def _attack_specs(exp: "Experiment") -> dict[tuple[int, str], list[tuple[int, Bi
 
 
 # ============================================================================ estimators
-class _Runtime:
+class _Runtime(Diagnostics, Flags):
     """What the runtime adds to the core nodes: receiver-side channel noise ``H_ij v_ij``
     on ``c_ij`` and ``H_c,ij v_c,ij`` on ``eta_ij`` (for neighbours heard from), the
     attack flag and the diagnostics (``u_i``, and the attacker's ``f``, ``f_c`` for plots)."""

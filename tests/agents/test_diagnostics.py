@@ -1,5 +1,6 @@
-"""The optional estimator hook: ``diagnostics() -> dict[str, float]`` and a ``flagged``
-property, recorded per round by the monitor, written to ``diagnostics.parquet`` and
+"""The optional estimator capabilities :class:`~estimation.base.Diagnostics`
+(``diagnostics() -> dict[str, float]``) and :class:`~estimation.base.Flags` (a ``flagged``
+property), declared by inheriting them, recorded per round by the monitor, written to ``diagnostics.parquet`` and
 summarised in ``summary.json`` (``diagnostics``, ``detected_attacks``)."""
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from agents.monitor import has_diagnostics, read_diagnostics
 from agents.rundir import write_json, write_metrics
 from agents.simulate import simulate
 from agents.summary import summarise
+from estimation.base import Diagnostics, Flags
 from scenarios.build import build
 from scenarios.loader import load
 from tests.conftest import SCENARIOS
@@ -21,7 +23,7 @@ from tests.conftest import SCENARIOS
 LKS = SCENARIOS / "lee_kim_shim.toml"
 
 
-class Flagging:
+class Flagging(Diagnostics, Flags):
     """Wraps an estimator: reports its round and raises a flag on agent 2 from round 3."""
 
     def __init__(self, inner, agent: int) -> None:
@@ -43,7 +45,7 @@ class Flagging:
         return self.agent == 2 and self.k >= 3
 
 
-class OnlyFlag:
+class OnlyFlag(Flags):
     def __init__(self, inner) -> None:
         self.inner = inner
 
@@ -72,6 +74,18 @@ def test_has_and_read_diagnostics():
     w.k = 5
     assert has_diagnostics(w) and read_diagnostics(w) == ({"round": 5.0, "indicator": 1.0}, True)
     assert has_diagnostics(OnlyFlag(est)) and read_diagnostics(OnlyFlag(est)) == (None, False)
+
+
+def test_an_undeclared_method_is_not_a_capability():
+    """A ``diagnostics`` method on a class that does not declare the capability is not read."""
+
+    class Undeclared:
+        def diagnostics(self):
+            return {"x": 1.0}
+
+        flagged = True
+
+    assert not has_diagnostics(Undeclared()) and read_diagnostics(Undeclared()) == (None, None)
 
 
 def test_monitor_records_and_the_run_directory_reports(tmp_path, monkeypatch):

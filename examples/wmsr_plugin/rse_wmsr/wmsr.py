@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import place_poles
 
-from estimation.base import Received
+from estimation.base import EstimatePayload, Received
 from estimation.errors import DesignError
 
 
@@ -139,15 +139,14 @@ def design(A: np.ndarray, agent_C: list[np.ndarray], *, pole: float) -> WmsrDesi
     return WmsrDesign(lam=lam, V=V, W=W, observers=tuple(observers))
 
 
-class WmsrObserver:
+class WmsrObserver(EstimatePayload):
     """Agent ``agent``'s estimator: local observer on the modes it sees, W-MSR (or the
-    plain average) with its in-neighbours on the others. The payload is the estimate.
+    plain average) with its in-neighbours on the others. The payload is the estimate
+    (declared by :class:`estimation.base.EstimatePayload`).
 
     ``step(k, y, inbox)``: ``y`` is ``y_i[k]`` or None; ``inbox`` maps an in-neighbour index to
     its newest message; only values stamped ``k - 1`` are used (older ones are stale).
     """
-
-    payload_is_estimate = True
 
     def __init__(self, design: WmsrDesign, *, agent: int, x0: np.ndarray, f: int, fusion: str = "wmsr") -> None:
         if fusion not in ("wmsr", "average"):
