@@ -148,3 +148,44 @@ def three_inertia(*, J: float = 0.01, b: float = 0.007, k: float = 1.37) -> Cont
         banks=tuple(C[i : i + 1] for i in range(5)),
         state_names=("theta1", "dtheta1", "theta2", "dtheta2", "theta3", "dtheta3"),
     )
+
+
+#: the largest signal a run may reach: products of two signals (squared norms, the
+#: monitor's ``|e|_2``) stay finite in float64 (max ~1.8e308)
+FLOAT_SIGNAL_LIMIT = 1e150
+
+
+def float_horizon(Ad: np.ndarray, *, x_norm: float, limit: float = FLOAT_SIGNAL_LIMIT, max_rounds: int) -> int:
+    """The last round ``k <= max_rounds`` up to which ``||Ad^j|| x_norm <= limit`` for every
+    ``j <= k``: how long an unstable plant's state stays representable (``max_rounds``
+    when it does for the whole horizon).
+
+    ``||Ad^j||`` is accumulated in log scale (the running product is renormalised each
+    step), measured in the Frobenius norm, an upper bound of the 2-norm (conservative). Once
+    ``||Ad^j||_F < 1`` the powers can never again exceed the largest one seen before
+    (``||Ad^(q j + r)|| <= ||Ad^r||``), so a stable plant returns after a few steps.
+
+    Parameters
+    ----------
+    Ad : (n, n) array, the one-round transition matrix
+    x_norm : float, > 0, a bound of the state's norm at round 0 (input effects included)
+    """
+    A = np.asarray(Ad, dtype=float)
+    if not x_norm > 0:
+        return max_rounds
+    budget = np.log(limit / x_norm)
+    if budget < 0:
+        return 0
+    P, log_scale = np.eye(A.shape[0]), 0.0
+    for k in range(1, max_rounds + 1):
+        P = A @ P
+        nP = float(np.linalg.norm(P))
+        if nP == 0.0:
+            return max_rounds
+        log_scale += np.log(nP)
+        P /= nP
+        if log_scale > budget:
+            return k - 1
+        if log_scale < 0.0:
+            return max_rounds
+    return max_rounds

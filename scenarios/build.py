@@ -20,7 +20,7 @@ import numpy as np
 from estimation import graphs
 from estimation.attacks import SensorAttackSignal
 from estimation.errors import DesignError, ScenarioError
-from estimation.lti import ContinuousLTI, three_inertia, zoh
+from estimation.lti import FLOAT_SIGNAL_LIMIT, ContinuousLTI, float_horizon, three_inertia, zoh
 from estimation.patrols import Patrol, PatrolSchedule, cell_patrols
 from estimation.robustness import attachment_graph, cell_graph
 from estimation.signals import Signal
@@ -310,7 +310,25 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
             raise ScenarioError(f"network.graph: the graph is disconnected: agents {names}", source=source)
     exp.stepper = model.stepper
     exp.design = exp.plugin.design(exp, check=check_conditions)
+    if check_conditions and model.stepper is None:
+        _check_float_horizon(exp, source)
     return exp
+
+
+def _check_float_horizon(exp: Experiment, source: str) -> None:
+    """An unstable linear plant must not outgrow float64 within the horizon: the state's
+    norm (``|x0|`` plus one round of the largest input, bounded by ``||Ad^k||`` times it)
+    stays below :data:`~estimation.lti.FLOAT_SIGNAL_LIMIT`, else ``run.rounds`` is refused
+    with the safe horizon (the same rule as the Mao-Tabuada plugin's own check)."""
+    u = exp.input
+    u_max = float(np.linalg.norm(np.abs(u.offset) + np.abs(u.amplitude))) if u.p else 0.0
+    x_norm = float(np.linalg.norm(exp.x0)) + float(np.linalg.norm(exp.Bd, 2) if exp.Bd.size else 0.0) * u_max
+    h = float_horizon(exp.Ad, x_norm=max(x_norm, 1e-300), max_rounds=exp.n_rounds)
+    if h < exp.n_rounds:
+        raise ScenarioError(
+            f"run.rounds: the horizon {exp.n_rounds} passes the safe horizon {h} of this unstable plant: by then its "
+            f"state (|x0| = {x_norm:.3g}, growing like ||Ad^k||) would pass {FLOAT_SIGNAL_LIMIT:g}, past which squared "
+            f"norms overflow float64; shorten the run to at most {h} rounds", source=source)
 
 
 def _trajectory_attack(at: Any, k: int, rows: np.ndarray, C: np.ndarray, Ad: np.ndarray, x0: np.ndarray,

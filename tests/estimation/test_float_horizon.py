@@ -1,0 +1,35 @@
+"""The float64 horizon of an unstable linear plant (estimation.lti.float_horizon) and the
+run it refuses (``run.rounds`` past it is a one-line error, exit 2)."""
+
+import math
+
+import numpy as np
+
+from estimation.lti import FLOAT_SIGNAL_LIMIT, float_horizon
+from tests.conftest import SCENARIOS, rse
+
+
+def test_scalar_growth_gives_the_analytic_horizon():
+    # |1.2^k| * 1 <= 1e150  <=>  k <= 150 ln 10 / ln 1.2 = 1894.4
+    assert float_horizon(np.array([[1.2]]), x_norm=1.0, max_rounds=10_000) == math.floor(150 * math.log(10) / math.log(1.2))
+    assert float_horizon(np.array([[1.2]]), x_norm=1e10, max_rounds=10_000) == math.floor(140 * math.log(10) / math.log(1.2))
+    # capped: a shorter horizon is safe
+    assert float_horizon(np.array([[1.2]]), x_norm=1.0, max_rounds=300) == 300
+
+
+def test_stable_and_marginal_plants_never_overflow():
+    assert float_horizon(np.diag([0.5, 0.9]), x_norm=1.0, max_rounds=10**6) == 10**6
+    # a Jordan block on the unit circle grows like k, far below the limit
+    assert float_horizon(np.array([[1.0, 1.0], [0.0, 1.0]]), x_norm=1.0, max_rounds=20_000) == 20_000
+    # already past the limit at round 0
+    assert float_horizon(np.eye(2), x_norm=10 * FLOAT_SIGNAL_LIMIT, max_rounds=10) == 0
+
+
+def test_a_run_past_the_horizon_of_an_unstable_plant_is_refused(tmp_path):
+    # mitra_cells: rho = 1.2, |x0| = 0.41: the state passes 1e150 after 1895 rounds
+    p = rse("simulate", str(SCENARIOS / "mitra_cells.toml"), "--set", "run.rounds=30000", "--set", "expect=[]",
+            "--no-progress", "--no-rerun", "--out", str(tmp_path / "run"))
+    assert p.returncode == 2, p.stdout + p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "run.rounds" in lines[0] and "safe horizon 1895" in lines[0], p.stderr
+    assert "RuntimeWarning" not in p.stdout + p.stderr
