@@ -30,7 +30,8 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
-from .runs import RunResult, _override_strings, check, load, load_experiment, open_run, pin_blas_threads, simulate
+from .runs import (RunResult, _override_strings, check, deferred_signals, ended_by, load, load_experiment, open_run,  # noqa: F401
+                   pin_blas_threads, simulate)
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd

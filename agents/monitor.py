@@ -24,6 +24,7 @@ nothing.
 
 from __future__ import annotations
 
+import time
 from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
@@ -95,8 +96,12 @@ class Monitor:
         self._est = np.full((self._chunk, exp.N, exp.n), np.nan)
         self._x = np.zeros((self._chunk, exp.n))
         self._rows: list[int] = []
-        #: called as ``on_chunk(rows, x (c, n), estimates (c, N, n))`` after each flush
+        #: called as ``on_chunk(rows, x (c, n), estimates (c, N, n))`` after each flush;
+        #: while it is set, rounds are flushed at least every ``flush_interval`` seconds
+        #: (a recorder streaming them to disk loses at most that much, :mod:`agents.recorder`)
         self.on_chunk = None
+        self.flush_interval = 1.0
+        self._flushed_at = time.monotonic()
         # [[output.plots]]: linear combinations of the state, truth and chosen agents
         self.plots = plot_rows(exp)
         self.traces = {name: np.full((K, 1 + len(agents)), np.nan) for name, _, agents in self.plots}
@@ -131,11 +136,13 @@ class Monitor:
         self._x[r] = x
         self._rows.append(k)
         self.last_round = max(self.last_round, k)
-        if len(self._rows) == self._chunk:
+        if len(self._rows) == self._chunk or (
+                self.on_chunk is not None and time.monotonic() - self._flushed_at >= self.flush_interval):
             self.flush()
 
     def flush(self) -> None:
         """Compute the norms of the buffered rounds."""
+        self._flushed_at = time.monotonic()
         if not self._rows:
             return
         rows = np.array(self._rows)

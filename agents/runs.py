@@ -174,19 +174,75 @@ def _summarise_sim(exp: Experiment, res: Any) -> tuple[dict[str, Any], list[Expe
 
 
 def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None = None, dashboard: Any = None,
-             batched: bool = True, keep_trajectories: bool = False) -> RunResult:
+             batched: bool = True, keep_trajectories: bool = False, out: str | Path | None = None) -> RunResult:
     """Run ``exp`` in the in-process lockstep simulator (deterministic for its seed).
 
     ``progress(k, worst_error)`` is called every 256 rounds; ``dashboard`` an
     :class:`agents.dashboard.Dashboard` to stream to; ``keep_trajectories`` keeps every
     estimate and the true state (``result.sim.estimates``, ``result.sim.truth``). The
     experiment is not consumed: every call starts from fresh estimators.
+
+    ``out``: the run directory, written as the run goes (:mod:`agents.recorder`: metrics
+    streamed at least once a second; ``manifest.json`` and ``design.json`` first). When the
+    run completes, the final files are written (``result.run_dir`` is set); when it ends
+    early (an exception, Ctrl-C), the directory is left consistent with ``complete: false``
+    in its ``summary.json`` before the exception propagates.
     """
     from .simulate import simulate as run_sim
 
-    res = run_sim(exp, progress=progress, dashboard=dashboard, batched=batched, keep_trajectories=keep_trajectories)
-    summary, results = _summarise_sim(exp, res)
-    return RunResult(exp, summary, results, driver="simulate", sim=res)
+    rec = None
+    if out is not None:
+        from .recorder import Recorder
+        from .rundir import write_design, write_manifest
+
+        d = Path(out)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "summary.json").unlink(missing_ok=True)  # a new run: not the summary of an earlier one
+        if not (d / "manifest.json").is_file():
+            write_manifest(d, exp, exp.frozen, driver="simulate", run_id=uuid.uuid4().hex[:12])
+        write_design(d, exp)
+        rec = dashboard = Recorder(d, exp, dashboard=dashboard)
+    try:
+        res = run_sim(exp, progress=progress, dashboard=dashboard, batched=batched, keep_trajectories=keep_trajectories)
+        summary, results = _summarise_sim(exp, res)
+        result = RunResult(exp, summary, results, driver="simulate", sim=res)
+        if rec is not None:
+            result.save(rec.run_dir)
+            rec.done()
+    except BaseException as exc:
+        if rec is not None:
+            with deferred_signals():
+                rec.abort(ended_by(exc))
+        raise
+    return result
+
+
+def ended_by(exc: BaseException) -> str:
+    """The ``reason`` of ``summary.json`` for a run ended by ``exc``."""
+    from estimation.errors import describe
+
+    if isinstance(exc, KeyboardInterrupt):
+        return f"interrupted ({exc.args[0]})" if exc.args else "interrupted (SIGINT)"
+    return describe(exc)
+
+
+class deferred_signals:
+    """``with deferred_signals():`` SIGINT and SIGTERM wait until the block ends (the
+    few hundred milliseconds in which a run directory is completed; main thread only)."""
+
+    def __enter__(self) -> None:
+        import signal
+        import threading
+
+        self._mask = None
+        if threading.current_thread() is threading.main_thread():
+            self._mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+    def __exit__(self, *exc: Any) -> None:
+        import signal
+
+        if self._mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, self._mask)
 
 
 def open_run(run_dir: str | Path, exp: Experiment | None = None) -> RunResult:

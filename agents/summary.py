@@ -5,6 +5,9 @@ over the output window and the convergence round (the first round from which the
 stays below ``[output] convergence_threshold``: ``error_inf`` for bounded plants, checked
 on ``relative_error_2`` when the block's true state grows past 1e3), plus the same for the
 worst regular agent, link counters and the expectations with their measured values.
+``complete`` says whether the run reached its horizon; a run that ended early (a signal, a
+failed plant) has ``complete: false``, the ``reason`` and ``last_round``, the last round
+recorded (:mod:`agents.recorder`).
 
 When estimators expose diagnostics or attack flags (:mod:`agents.monitor`), the summary
 also has ``diagnostics`` (per agent and name: final value, largest magnitude overall and
@@ -152,7 +155,10 @@ def evaluate(exp: Experiment, mon: Monitor, regular: np.ndarray) -> list[Expecta
 
 
 def summarise(exp: Experiment, mon: Monitor, regular: np.ndarray, links: dict[str, dict[str, int]],
-              rejected: dict[str, dict[str, int]] | None = None) -> dict[str, Any]:
+              rejected: dict[str, dict[str, int]] | None = None, *, complete: bool = True,
+              reason: str | None = None) -> dict[str, Any]:
+    """``summary.json``. ``complete=False`` marks a run that ended early (``reason`` says
+    why); ``last_round`` is always the last round recorded."""
     last = mon.last_round
     win = _rounds(exp, "window", last)
     thr = exp.scenario.output.convergence_threshold
@@ -183,6 +189,9 @@ def summarise(exp: Experiment, mon: Monitor, regular: np.ndarray, links: dict[st
         worst[name] = rec
     out = {
         "scenario": exp.scenario.run.name,
+        "complete": complete,
+        **({} if complete else {"reason": reason or "the run ended early"}),
+        "last_round": last,
         "rounds": last,
         "t_final": last * exp.dt,
         "window": list(exp.window),

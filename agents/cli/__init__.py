@@ -39,8 +39,33 @@ for _command in (simulate, check, run, plant, agent, monitor, router, certs, com
 
 def main() -> None:
     """The ``rse`` console script: pins BLAS to one thread (the runtime's linear algebra is
-    many small products; users can override the variables), then runs the command."""
+    many small products; users can override the variables), then runs the command.
+
+    When the command is over (also after Ctrl-C / SIGTERM: every command closes its own
+    sessions, sinks and child processes on the way out), the exit handlers run, the output
+    is flushed and the process exits at once: the interpreter's teardown of numpy, scipy,
+    pyarrow and rerun takes seconds on a loaded machine, and a command must end within
+    2 s of a signal."""
+    import atexit
+    import os
+    import sys
+
     from ..api import pin_blas_threads
 
     pin_blas_threads()
-    cli(prog_name="rse")
+    try:
+        cli(prog_name="rse")
+        code = 0
+    except SystemExit as exc:
+        if exc.code is None or isinstance(exc.code, int):
+            code = exc.code or 0
+        else:
+            print(exc.code, file=sys.stderr)
+            code = 1
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)

@@ -22,7 +22,7 @@ from ..api import load_experiment
 __all__ = [
     "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT", "EXIT_EXPECTATION", "EXIT_INTERRUPTED",
     "handle_errors", "scenario_options", "rerun_options", "dashboard_options", "wait_while_serving",
-    "load_experiment", "secure_files",
+    "load_experiment", "secure_files", "sigterm_interrupts",
 ]
 
 
@@ -82,6 +82,22 @@ def dashboard_options(run_dir: Path, rrd: Path | None, no_rerun: bool, viewer: b
         return None
     return DashboardOptions(rrd=rrd or run_dir / "recording.rrd", viewer=viewer, serve_web=serve_web,
                             web_port=web_port, grpc_port=grpc_port)
+
+
+def sigterm_interrupts() -> None:
+    """SIGTERM interrupts this command as Ctrl-C does (a ``KeyboardInterrupt`` naming the
+    signal), so that it ends through the same paths: files completed, sinks closed, exit 130."""
+    import signal
+    import threading
+
+    def handler(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, handler)
+        # also when started with SIGINT ignored (a background job of a script): a signal
+        # sent on purpose stops the command
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def wait_while_serving(url: str) -> None:

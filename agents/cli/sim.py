@@ -11,7 +11,8 @@ import click
 from estimation.errors import EXIT_FAILED, EXIT_OK, ExpectationFailed
 
 from .. import api
-from .common import dashboard_options, handle_errors, load_experiment, rerun_options, scenario_options, wait_while_serving
+from .common import (dashboard_options, handle_errors, load_experiment, rerun_options, scenario_options,
+                     sigterm_interrupts, wait_while_serving)
 
 
 @click.command()
@@ -31,45 +32,48 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
     measured value.
     """
     from ..console import expectations_table, out as console, round_progress, summary_table
-    from ..rundir import default_run_dir, write_design, write_manifest
+    from ..recorder import incomplete_summary, regular_mask
+    from ..rundir import default_run_dir, write_json, write_manifest
 
+    sigterm_interrupts()
     exp, frozen = load_experiment(scenario, overrides, seed)
     run_dir = out or default_run_dir(exp.scenario.run.name)
     run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "summary.json").unlink(missing_ok=True)  # a new run: not the summary of an earlier one
     run_id = uuid.uuid4().hex[:12]
     write_manifest(run_dir, exp, frozen, driver="simulate", run_id=run_id)
-    write_design(run_dir, exp)
     dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
     dash = None
-    if dopts is not None:
-        from ..dashboard import Dashboard
-
-        dash = Dashboard(exp, run_id=run_id, options=dopts)
-        for what, url in dopts.urls.items():
-            console.print(f"rerun {what}: {url}")
     try:
+        if dopts is not None:
+            from ..dashboard import Dashboard
+
+            dash = Dashboard(exp, run_id=run_id, options=dopts)
+            for what, url in dopts.urls.items():
+                console.print(f"rerun {what}: {url}")
         with round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress) as update:
-            res = api.simulate(exp, progress=update, dashboard=dash)
-    except BaseException:
+            # the run directory is written as the run goes and left consistent if it ends early
+            res = api.simulate(exp, progress=update, dashboard=dash, out=run_dir)
         if dash is not None:
-            dash.close()
+            dash.flush()  # the recording file is complete; a served viewer stays up below
+        results = res.expectations()
+        summary = res.summary()
+        console.print(summary_table(summary, title=f"{exp.scenario.run.name}: {res.sim.rounds} rounds, window t in [{exp.window[0]:g}, {exp.window[1]:g}]"))
+        if results:
+            console.print(expectations_table(results))
+        console.print(f"run directory: {run_dir}")
+        failed = [r for r in results if r.failed]
+        if dash is not None and dopts.serve_web:
+            wait_while_serving(dopts.urls.get("web", ""))
+    except BaseException as exc:
+        if not (run_dir / "summary.json").exists():  # ended before the rounds began
+            with api.deferred_signals():
+                write_json(run_dir / "summary.json", incomplete_summary(exp, None, regular_mask(exp), reason=api.ended_by(exc)))
         raise
-    if dash is not None:
-        dash.flush()  # the recording file is complete; a served viewer stays up below
-    results = res.expectations()
-    summary = res.summary()
-    res.save(run_dir, run_id=run_id)
-    console.print(summary_table(summary, title=f"{exp.scenario.run.name}: {res.sim.rounds} rounds, window t in [{exp.window[0]:g}, {exp.window[1]:g}]"))
-    if results:
-        console.print(expectations_table(results))
-    console.print(f"run directory: {run_dir}")
-    failed = [r for r in results if r.failed]
-    if dash is not None:
-        try:
-            if dopts.serve_web:
-                wait_while_serving(dopts.urls.get("web", ""))
-        finally:
-            dash.close()
+    finally:
+        if dash is not None:
+            with api.deferred_signals():
+                dash.close()
     if failed:
         raise ExpectationFailed(f"{len(failed)} of {len(results)} expectation(s) failed: " + "; ".join(r.label for r in failed))
 
