@@ -101,7 +101,7 @@ class Monitor:
         #: (a recorder streaming them to disk loses at most that much, :mod:`agents.recorder`)
         self.on_chunk = None
         self.flush_interval = 1.0
-        self._flushed_at = time.monotonic()
+        self._flushed_at = -float("inf")  # the first round is handed on at once
         # [[output.plots]]: linear combinations of the state, truth and chosen agents
         self.plots = plot_rows(exp)
         self.traces = {name: np.full((K, 1 + len(agents)), np.nan) for name, _, agents in self.plots}

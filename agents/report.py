@@ -62,25 +62,65 @@ class RunData:
 
 
 def load_run(path: str | Path) -> RunData:
+    """Read a run directory. A run that ended early reads as it is: its ``summary.json``
+    says ``complete: false``; a directory whose writer was killed outright (no
+    ``metrics.parquet`` yet) is read from its partial metrics stream
+    (:func:`agents.recorder.read_partial`), with a summary computed from those metrics."""
+    from .recorder import read_partial
+
     p = Path(path)
     if not p.is_dir():
         raise ScenarioError("not a run directory (no such directory)", source=str(path))
-    missing = [f for f in ("manifest.json", "summary.json", "metrics.parquet") if not (p / f).exists()]
+    partial = None
+    if not (p / "metrics.parquet").exists():
+        try:
+            partial = read_partial(p)
+        except (OSError, ValueError) as exc:
+            raise ScenarioError(f"unreadable run directory: {exc}", source=str(path)) from None
+    missing = [f for f in ("manifest.json", "metrics.parquet") if not (p / f).exists()
+               and not (f == "metrics.parquet" and partial is not None)]
     if missing:
-        raise ScenarioError(f"not a complete run directory: missing {', '.join(missing)}", source=str(path))
+        raise ScenarioError(f"not a run directory: missing {', '.join(missing)}", source=str(path))
     try:
         manifest = json.loads((p / "manifest.json").read_text())
-        summary = json.loads((p / "summary.json").read_text())
-        table = pq.read_table(p / "metrics.parquet")
+        summary = json.loads((p / "summary.json").read_text()) if (p / "summary.json").exists() else None
+        table = partial if partial is not None else pq.read_table(p / "metrics.parquet")
     except (json.JSONDecodeError, OSError, ValueError) as exc:
         raise ScenarioError(f"unreadable run directory: {exc}", source=str(path)) from None
     metrics = {c: table.column(c).to_numpy(zero_copy_only=False) for c in table.column_names}
     metrics["block"] = np.asarray([str(b) for b in table.column("block").to_pylist()])
+    if summary is None:
+        summary = summary_from_metrics(metrics, reason="no summary.json: the run's writer was killed")
     traces = None
     if (p / "traces.parquet").exists():
         t = pq.read_table(p / "traces.parquet")
         traces = {c: np.asarray(t.column(c).to_pylist()) for c in t.column_names}
     return RunData(p, manifest, summary, metrics, traces)
+
+
+def summary_from_metrics(metrics: dict[str, np.ndarray], *, reason: str) -> dict[str, Any]:
+    """The part of ``summary.json`` the report shows, from the metrics alone (a run
+    without its summary): per agent and block the errors at the last round recorded and
+    the largest over the run (the output window is not known here)."""
+    k = metrics["k"]
+    last = int(k.max()) if k.size else -1
+    agents: dict[str, Any] = {}
+    for aid in sorted(set(int(a) for a in metrics["agent"])):
+        sel_a = metrics["agent"] == aid
+        rec: dict[str, Any] = {"regular": bool(metrics["regular"][sel_a][0]), "blocks": {}}
+        for block in dict.fromkeys(metrics["block"][sel_a].tolist()):
+            sel = sel_a & (metrics["block"] == block)
+            b: dict[str, Any] = {"convergence_round": None}
+            for m in ("error_2", "error_inf", "relative_error_2"):
+                v = metrics[m][sel].astype(float)
+                fin = v[k[sel] == last]
+                b[f"final_{m}"] = float(fin[0]) if fin.size else None
+                b[f"window_max_{m}"] = float(np.nanmax(v)) if np.isfinite(v).any() else None
+            rec["blocks"][block] = b
+        agents[str(aid)] = rec
+    worst: dict[str, Any] = {}
+    return {"complete": False, "reason": reason, "last_round": last, "rounds": last, "window": [None, None],
+            "agents": agents, "worst_regular": worst, "links": {}, "rejected": {}}
 
 
 def _fmt(v: Any) -> str:
@@ -124,7 +164,9 @@ def report_table(run: RunData):
 
     m = "|e|_2/|x|_2" if run.unstable() else "|e|_inf"
     w = run.summary.get("window", [None, None])
-    t = Table(title=f"{run.name} ({run.manifest.get('driver', '?')}): {run.summary.get('rounds')} rounds, window [{_fmt(w[0])}, {_fmt(w[1])}]",
+    status = "" if run.summary.get("complete", True) else (
+        f" - INCOMPLETE: {run.summary.get('reason', 'ended early')}, last round recorded {run.summary.get('last_round')}")
+    t = Table(title=f"{run.name} ({run.manifest.get('driver', '?')}): {run.summary.get('rounds')} rounds, window [{_fmt(w[0])}, {_fmt(w[1])}]{status}",
               title_justify="left")
     for c in TABLE_COLUMNS:
         t.add_column(c.format(m=m), justify="right")
