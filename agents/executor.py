@@ -11,7 +11,9 @@ A task is a module-level function and picklable arguments (a frozen scenario and
 overrides, never a live object or a path the worker may not have); results come back in
 completion order with the index of their task, so a caller writes each as it arrives
 (on its own side: a task writes no file) and stays resumable. Leaving the ``with`` block
-(also by an exception or Ctrl-C) cancels what has not started and shuts the workers down.
+cancels what has not started and shuts the workers down; leaving it by an exception or
+Ctrl-C / SIGTERM also terminates the local tasks that are running (within a second, no
+orphan).
 
 Two implementations: :class:`LocalExecutor`, a ``spawn`` process pool on this machine
 (the default), and :class:`DaskExecutor`, a Dask distributed cluster (``Client.submit``
@@ -59,12 +61,13 @@ class LocalExecutor:
     def __enter__(self) -> LocalExecutor:
         return self
 
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
+    def __exit__(self, exc_type: Any, *exc: Any) -> None:
+        self.close(now=exc_type is not None)
 
     def _ensure(self) -> ProcessPoolExecutor:
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=get_context("spawn"))
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=get_context("spawn"),
+                                             initializer=_ignore_sigint)
         return self._pool
 
     def map(self, fn: Callable[..., Any], tasks: Sequence[tuple[Any, ...]]) -> Iterator[tuple[int, Any]]:
@@ -73,19 +76,43 @@ class LocalExecutor:
         pool = self._ensure()
         futs: dict[Future, int] = {pool.submit(fn, *args): i for i, args in enumerate(tasks)}
         pending = set(futs)
+        interrupted = True
         try:
             while pending:
                 done, pending = wait(pending, return_when=FIRST_COMPLETED)
                 for fut in done:
                     yield futs[fut], fut.result()
+            interrupted = False
         finally:
-            for fut in pending:
-                fut.cancel()
+            if interrupted:
+                self.close(now=True)
 
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
+    def close(self, *, now: bool = False) -> None:
+        """Shut the workers down: after the running tasks finish, or (``now``: the caller
+        is leaving on an exception or a signal) at once, terminating the running tasks
+        (a task writes its result last, so an interrupted one is simply not done)."""
+        if self._pool is None:
+            return
+        pool, self._pool = self._pool, None
+        if not now:
+            pool.shutdown(wait=True, cancel_futures=True)
+            return
+        procs = list((getattr(pool, "_processes", None) or {}).values())
+        for proc in procs:
+            proc.kill()  # a worker holds nothing to close: its task's files are written atomically
+        for proc in procs:  # joined: no orphan, no zombie
+            proc.join()
+        # the pool sees its workers gone and fails every future left (cancelling them here
+        # as well races with that in CPython 3.11: an InvalidStateError, then a hang)
+        pool.shutdown(wait=True, cancel_futures=False)
+
+
+def _ignore_sigint() -> None:
+    """Workers leave Ctrl-C to the parent, which stops them (a terminal sends SIGINT to
+    the whole process group)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 class DaskExecutor:

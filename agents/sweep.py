@@ -209,10 +209,19 @@ def run_sweep(scenario: Path, grid_specs: list[str], *, seeds: int, jobs: int, o
 
     from .executor import open_executor
 
-    with open_executor(jobs, cluster) as ex:  # a cluster that does not answer fails here, before any progress
-        if progress:
-            progress(len(rows), len(pts))
-        run_points(scenario, overrides, todo, out, jobs=jobs, record=record, executor=ex, on_row=on_row)
+    try:
+        with open_executor(jobs, cluster) as ex:  # a cluster that does not answer fails here, before any progress
+            if progress:
+                progress(len(rows), len(pts))
+            run_points(scenario, overrides, todo, out, jobs=jobs, record=record, executor=ex, on_row=on_row)
+    except BaseException:
+        # interrupted: the table holds the points finished so far (the sweep resumes)
+        if rows:
+            from .api import deferred_signals
+
+            with deferred_signals():
+                write_table(out, rows, [k for k, _ in grid])
+        raise
     order = {p.id: i for i, p in enumerate(pts)}
     rows.sort(key=lambda r: order.get(r.get("point"), len(order)))  # grid order, whatever the completion order
     write_table(out, rows, [k for k, _ in grid])

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from .common import handle_errors
+from .common import handle_errors, sigterm_interrupts
 
 
 @click.command()
@@ -48,6 +48,7 @@ def sweep(scenario: Path, grid: tuple[str, ...], seeds: int, jobs: int, out: Pat
     from ..console import out as console
     from ..sweep import figure, run_sweep
 
+    sigterm_interrupts()
     sc, _ = load(scenario, list(overrides))
     out = out or Path("runs") / f"sweep-{sc.run.name}"
     bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("runs"),
