@@ -17,7 +17,8 @@ import click
 
 from estimation.errors import ExpectationFailed, RSEError, ScenarioError
 
-from .common import EXIT_INTERRUPTED, dashboard_options, handle_errors, load_experiment, rerun_options, scenario_options, secure_files, wait_while_serving
+from .common import (EXIT_INTERRUPTED, dashboard_options, handle_errors, load_experiment, rerun_options,
+                     scenario_options, secure_files, sigterm_interrupts, wait_while_serving)
 
 
 def _run_options(fn: Callable) -> Callable:
@@ -114,6 +115,7 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
     from ..net.launcher import launch
     from ..rundir import default_run_dir
 
+    sigterm_interrupts()
     cfg = _config(mode, rate, deadline, startup_timeout, save_estimates, warmup)
     eps = _endpoints(connect)
     if with_router and eps:
@@ -206,6 +208,7 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
     from ..net.child import ChildSpec
     from ..net.launcher import load_team, session_for
 
+    sigterm_interrupts()  # a signal before the role's own handlers are up ends it the same way
     ctx = click.get_current_context()
     data: dict[str, Any] = load_team(team) if team is not None else {}
     src = lambda name: ctx.get_parameter_source(name) == click.core.ParameterSource.DEFAULT  # noqa: E731
@@ -362,22 +365,56 @@ def parse_ids(text: str) -> list[int]:
 
 @click.command()
 @_role_options
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Where to write metrics and summary.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Where to write metrics and summary (default with --team: the team's run directory).")
 @click.option("--save-estimates", is_flag=True, help="Also write estimates.npy and truth.npy.")
 @rerun_options
 @handle_errors
-def monitor(out: Path, save_estimates: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
+def monitor(out: Path | None, save_estimates: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
             web_port: int | None, grpc_port: int | None, **kw: Any) -> None:
-    """Run the monitor of SCENARIO in this process: writes metrics.parquet, summary.json and
-    the Rerun recording recording.rrd (recording id = run id) to --out.
+    """Run the monitor of SCENARIO in this process: writes metrics.parquet (streamed as the
+    run goes), summary.json and the Rerun recording recording.rrd (recording id = run id)
+    to --out.
+
+    Against a team started by `rse run` (also one whose monitor died: the team goes on
+    without it): `rse monitor --team RUN_DIR/team.json` rejoins it, keeps the rounds
+    recorded before and records from the round it joins at; the rounds in between are
+    listed in summary.json (unrecorded_rounds). Its recording is then recording-2.rrd (-3,
+    ...) unless --rrd says otherwise.
 
     With --serve-web it serves the web viewer (every interface: --web-port, default 9090, and
     the gRPC endpoint the page reads, --grpc-port, default 9876), prints the URL and keeps
     serving after the run until Ctrl-C / SIGTERM.
     """
+    team = kw.get("team")
+    if out is None:
+        if team is None:
+            raise ScenarioError("give --out DIR (or --team RUN_DIR/team.json)")
+        out = team if team.is_dir() else team.parent
+    if team is not None and rrd is None and (out / "recording.rrd").exists():
+        n = 2
+        while (out / f"recording-{n}.rrd").exists():
+            n += 1
+        rrd = out / f"recording-{n}.rrd"
     dopts = dashboard_options(out, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
-    _run_single(_role_spec("monitor", "monitor", out_dir=str(out), save_estimates=save_estimates, dashboard=dopts,
-                           conn=_UrlPrinter() if dopts is not None else None, **kw))
+    cached = _cached_experiment(kw)
+    spec = _role_spec("monitor", "monitor", out_dir=str(out), save_estimates=save_estimates, dashboard=dopts,
+                      conn=_UrlPrinter() if dopts is not None else None, resume=team is not None,
+                      _validate=cached is None, **kw)
+    if cached is not None:
+        spec.experiment = cached
+    _run_single(spec)
+
+
+def _cached_experiment(kw: dict[str, Any]) -> bytes | None:
+    """The experiment ``rse run`` built for its team (``RUN_DIR/team/experiment.pkl``): a
+    process that rejoins with ``--team`` and no scenario, override or seed of its own
+    starts without the offline design."""
+    team = kw.get("team")
+    if team is None or kw.get("overrides") or kw.get("seed") is not None or kw.get("scenario") is not None:
+        return None
+    path = (team if team.is_dir() else team.parent) / "team" / "experiment.pkl"
+    return path.read_bytes() if path.is_file() else None
 
 
 class _UrlPrinter:

@@ -343,7 +343,8 @@ class AgentProcess(Role):
         return self.finished.is_set() or not self.member
 
     def _maybe_ready(self) -> None:
-        if self.member or self.plant_seen_at is None or ("monitor", 0) not in self.alive:
+        # a team that is running goes on without a monitor: an agent may rejoin it then
+        if self.member or self.plant_seen_at is None or (("monitor", 0) not in self.alive and not self.running_team):
             return
         now = time.monotonic()
         neighbours = set(self.in_ids) | set(self.out_ids)

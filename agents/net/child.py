@@ -52,6 +52,7 @@ class ChildSpec:
     # channel's seeds), pickled, or its path: an agent process reads this and no experiment
     node: bytes | str | None = None
     dashboard: Any = None  # the monitor's agents.dashboard.DashboardOptions (None: no Rerun output)
+    resume: bool = False  # a monitor rejoining a running team (rse monitor --team)
     # several agents in this process (one session, one asyncio task and node each):
     # their ids and slices (as agent_id and node for one agent)
     agent_ids: tuple[int, ...] = ()
@@ -87,6 +88,11 @@ def _open(opts: Any) -> Any:
         return open_session(SessionOptions(mode="peer", listen=(tcp_endpoint(0),), connect=opts.connect))
 
 
+#: the file in the run directory naming the process id of the monitor recording the run
+MONITOR_PID = "monitor.pid"
+#: how long the launcher waits for a rejoined monitor to finish after the team stopped
+REJOINED_MONITOR_S = 30.0
+
 #: niceness increment of the monitor process (0: none)
 MONITOR_NICE = 10
 
@@ -98,9 +104,18 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
 
     loop = asyncio.get_running_loop()
     task = asyncio.current_task()
+
+    def stop() -> None:
+        # cancelled until it is done: asyncio.wait_for of Python 3.11 can swallow a
+        # cancellation that meets its inner future's completion (then a loop waiting for
+        # the team would go on)
+        if not task.done():
+            task.cancel()
+            loop.call_later(0.1, stop)
+
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, task.cancel)
+            loop.add_signal_handler(sig, stop)
     watcher = None
     if spec.watch_parent:
         parent = os.getppid()
@@ -108,7 +123,7 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
         async def watch() -> None:
             while os.getppid() == parent:
                 await asyncio.sleep(0.5)
-            task.cancel()
+            stop()
 
         watcher = asyncio.ensure_future(watch())
     if spec.role == "monitor" and MONITOR_NICE:
@@ -153,7 +168,11 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
                 progress("urls", dict(spec.dashboard.urls))
             from .monitor import run_monitor
 
-            res = await run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress, dashboard=dash)
+            if out is not None:  # who records this run now (the launcher waits for a rejoined monitor)
+                out.mkdir(parents=True, exist_ok=True)
+                (out / MONITOR_PID).write_text(f"{os.getpid()}\n")
+            res = await run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress, dashboard=dash,
+                                    resume=spec.resume)
             if dash is not None and spec.dashboard.serve_web:
                 # the run is over: keep serving the recording until SIGINT / SIGTERM
                 bus.close()
@@ -163,6 +182,16 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
         finally:
             if dash is not None:
                 dash.close()
+            if out is not None and not (out / "summary.json").exists():
+                # stopped before its rounds began: what earlier monitors recorded, or a header
+                from agents.recorder import salvage
+
+                with contextlib.suppress(Exception):
+                    salvage(out, exp, reason="interrupted")
+            if out is not None:
+                with contextlib.suppress(OSError):
+                    if (out / MONITOR_PID).read_text().strip() == str(os.getpid()):
+                        (out / MONITOR_PID).unlink()
     finally:
         if watcher is not None:
             watcher.cancel()

@@ -47,7 +47,8 @@ class MonitorProcess(Role):
     name = "monitor"
 
     def __init__(self, exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig, *, out_dir: Path | None = None,
-                 progress: Callable[[str, Any], None] | None = None, dashboard: Any = None) -> None:
+                 progress: Callable[[str, Any], None] | None = None, dashboard: Any = None,
+                 resume: bool = False) -> None:
         super().__init__(exp, bus, keys, cfg)
         from agents.monitor import Monitor
 
@@ -57,6 +58,14 @@ class MonitorProcess(Role):
         if dashboard is not None:
             self._setup_dashboard(dashboard)
         self.out_dir = out_dir
+        # a monitor that rejoins a running team: the rounds recorded before (the stream of
+        # the earlier monitor(s) in out_dir) are loaded, and it records from the first
+        # round it sees; the rounds in between are the gap
+        self.resume = resume
+        self.synced = not resume
+        self.stream = None
+        if out_dir is not None:
+            self._setup_stream(Path(out_dir))
         self.progress = progress or (lambda kind, data: None)
         self.rounds: dict[int, _Round] = {}
         self.next_k = 0
@@ -99,6 +108,23 @@ class MonitorProcess(Role):
                 dash.log_chunk(rows, mon, x=xs, est=ests, delivered=frames, counters=self._counters.copy())
             except Exception:  # the dashboard must not stop the monitor
                 log.exception("monitor: could not log to the dashboard")
+
+        mon.on_chunk = on_chunk
+
+    def _setup_stream(self, out_dir: Path) -> None:
+        """Metrics streamed to ``out_dir`` as the rounds are recorded (:mod:`agents.recorder`)."""
+        from agents.recorder import MetricsStream, load_into, read_partial, regular_mask
+
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if self.resume:
+            load_into(self.mon, read_partial(out_dir))
+        stream = self.stream = MetricsStream(out_dir, self.exp, regular_mask(self.exp))
+        mon, inner = self.mon, self.mon.on_chunk
+
+        def on_chunk(rows: Any, xs: np.ndarray, ests: np.ndarray) -> None:
+            stream.write(mon, rows)
+            if inner is not None:
+                inner(rows, xs, ests)
 
         mon.on_chunk = on_chunk
 
@@ -146,6 +172,8 @@ class MonitorProcess(Role):
             if got is None:
                 return
             k = got[1].stamp
+            if not self.synced and 0 <= k <= K:
+                self._sync(k)
             if k > K or k < self.next_k:
                 self.rejects.add(PLANT_ID, "range")
                 return
@@ -185,6 +213,16 @@ class MonitorProcess(Role):
             self.rejects.add(None, "key")
         self._close_rounds(final=False)
 
+    def _sync(self, k: int) -> None:
+        """A rejoining monitor records from round ``k``, the first truth it receives."""
+        self.synced = True
+        self.next_k = k
+        for old in [j for j in self.rounds if j < k]:
+            del self.rounds[old]
+        log.info("monitor: rejoined the team at round %d", k)
+        self.progress("member", {"t_wall": round(time.monotonic() - self.t0, 3), "round": k, "role": "monitor",
+                                 "id": 0, "event": "rejoin"})
+
     def _complete(self, r: _Round) -> bool:
         # not before the plant's token: until then this process does not know the team (a
         # monitor that subscribes late gets the tokens present in one batch, which through
@@ -197,6 +235,8 @@ class MonitorProcess(Role):
         return True
 
     def _close_rounds(self, final: bool) -> None:
+        if not self.synced:
+            return
         closed = False
         while True:
             k = self.next_k
@@ -239,29 +279,59 @@ class MonitorProcess(Role):
         bus.announce(keys.alive("monitor", 0))
         consumer = asyncio.ensure_future(self.consume())
         try:
-            # the whole run, bounded only by the plant: it stops the team (or leaves)
-            while self.stop_round is None:
-                if self.next_k == 0 and ("plant", 0) not in self.alive and time.monotonic() - self.t0 > cfg.startup_timeout:
-                    raise TransportError(f"no plant found within {cfg.startup_timeout:g} s")
-                if self.next_k > 0 and ("plant", 0) not in self.alive:
-                    await asyncio.sleep(max(0.5, cfg.deadline))
-                    if self.stop_round is None and ("plant", 0) not in self.alive:
-                        raise TransportError("the plant left before the end of the run")
-                self.changed.clear()
-                try:
-                    await asyncio.wait_for(self.changed.wait(), 0.25)
-                except asyncio.TimeoutError:
-                    pass
-            K = self.stop_round
-            await self.wait_for(lambda: self.next_k > K or (K in self.rounds and self._complete(self.rounds[K])), cfg.deadline)
-            self._close_rounds(final=True)
-            agents_alive = lambda: {str(a) for (r, a) in self.alive if r == "agent"}  # noqa: E731
-            await self.wait_for(lambda: "plant" in self.stats and agents_alive() <= set(self.stats), cfg.linger)
-            return self._finish()
+            return await self._run()
+        except BaseException as exc:  # a signal, the plant gone: keep what was recorded
+            self._abort(exc)
+            raise
         finally:
             consumer.cancel()
+            if self.stream is not None:
+                self.stream.close()
 
-    def _finish(self) -> MonitorResult:
+    def _abort(self, exc: BaseException) -> None:
+        """The run ends early: the rounds received are recorded, and the run directory is
+        written with ``complete: false`` and why (:mod:`agents.recorder`)."""
+        from estimation.errors import describe
+
+        if self.out_dir is None:
+            return
+        try:
+            if self.synced and self.max_truth >= self.next_k:
+                self.stop_round = self.max_truth
+                self._close_rounds(final=True)
+            if ("plant", 0) not in self.alive and self.next_k > 0:
+                reason = f"the plant left the team after round {self.mon.last_round}"
+            elif isinstance(exc, (asyncio.CancelledError, KeyboardInterrupt)):
+                reason = "interrupted"
+            else:
+                reason = describe(exc)
+            self._finish(complete=False, reason=reason)
+        except Exception:  # the original exception is what the caller must see
+            log.exception("monitor: could not write the run directory")
+
+    async def _run(self) -> MonitorResult:
+        cfg = self.cfg
+        # the whole run, bounded only by the plant: it stops the team (or leaves)
+        while self.stop_round is None:
+            if self.next_k == 0 and ("plant", 0) not in self.alive and time.monotonic() - self.t0 > cfg.startup_timeout:
+                raise TransportError(f"no plant found within {cfg.startup_timeout:g} s")
+            if self.next_k > 0 and ("plant", 0) not in self.alive:
+                await asyncio.sleep(max(0.5, cfg.deadline))
+                if self.stop_round is None and ("plant", 0) not in self.alive:
+                    raise TransportError("the plant left before the end of the run")
+            self.changed.clear()
+            try:
+                await asyncio.wait_for(self.changed.wait(), 0.25)
+            except asyncio.TimeoutError:
+                pass
+        K = self.stop_round
+        await self.wait_for(lambda: self.next_k > K or (K in self.rounds and self._complete(self.rounds[K])), cfg.deadline)
+        self._close_rounds(final=True)
+        agents_alive = lambda: {str(a) for (r, a) in self.alive if r == "agent"}  # noqa: E731
+        await self.wait_for(lambda: "plant" in self.stats and agents_alive() <= set(self.stats), cfg.linger)
+        return self._finish()
+
+    def _finish(self, *, complete: bool = True, reason: str | None = None) -> MonitorResult:
         from agents.summary import evaluate, summarise
 
         exp, mon = self.exp, self.mon
@@ -296,7 +366,8 @@ class MonitorProcess(Role):
                  for jj, j in enumerate([exp.agent_ids[x] for x in exp.in_neighbours(exp.agent_ids.index(aid))])}
         links = dict(sorted(links.items(), key=lambda kv: order.get(kv[0], (1 << 30, 0))))
         results = evaluate(exp, mon, regular)
-        summary = summarise(exp, mon, regular, links, rejected)
+        summary = summarise(exp, mon, regular, links, rejected, complete=complete, reason=reason)
+        summary["unrecorded_rounds"] = _gaps(mon.truth_norm[: mon.last_round + 1, 0])
         summary["expectations"] = [r.as_dict() for r in results]
         summary["performance"] = perf
         summary["driver"] = "run"
@@ -304,19 +375,35 @@ class MonitorProcess(Role):
         summary["membership"] = self.membership
         summary["processes"] = processes
         if self.out_dir is not None:
-            from agents.rundir import write_json, write_metrics
+            from agents.recorder import write_run
 
-            self.out_dir.mkdir(parents=True, exist_ok=True)
-            write_metrics(self.out_dir, exp, mon, regular)
-            write_json(self.out_dir / "summary.json", summary)
+            if self.stream is not None:
+                self.stream.close()
+            write_run(self.out_dir, exp, mon, regular, summary)
             if self.traj is not None:
                 np.save(self.out_dir / "estimates.npy", self.traj[: mon.last_round + 1])
                 np.save(self.out_dir / "truth.npy", self.truth[: mon.last_round + 1])
         return MonitorResult(summary, self.out_dir, self.traj, self.truth)
 
 
+def _gaps(truth_norm: np.ndarray) -> list[list[int]]:
+    """``[first, last]`` of every run of rounds with no record (no monitor ran then)."""
+    miss = np.isnan(truth_norm)
+    out: list[list[int]] = []
+    for k in np.flatnonzero(miss):
+        if out and out[-1][1] == k - 1:
+            out[-1][1] = int(k)
+        else:
+            out.append([int(k), int(k)])
+    return out
+
+
 async def run_monitor(exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig, *, out_dir: Path | None = None,
-                      progress: Callable[[str, Any], None] | None = None, dashboard: Any = None) -> MonitorResult:
-    """The monitor until the plant stops the team; writes metrics and summary to ``out_dir``;
-    streams to ``dashboard`` (an :class:`agents.dashboard.Dashboard`) when given."""
-    return await MonitorProcess(exp, bus, keys, cfg, out_dir=out_dir, progress=progress, dashboard=dashboard).run()
+                      progress: Callable[[str, Any], None] | None = None, dashboard: Any = None,
+                      resume: bool = False) -> MonitorResult:
+    """The monitor until the plant stops the team; writes metrics (as it goes) and the
+    summary to ``out_dir``, also when the run ends early; streams to ``dashboard`` (an
+    :class:`agents.dashboard.Dashboard`) when given. ``resume``: rejoin a running team
+    whose earlier monitor left (see :class:`MonitorProcess`)."""
+    return await MonitorProcess(exp, bus, keys, cfg, out_dir=out_dir, progress=progress, dashboard=dashboard,
+                                resume=resume).run()

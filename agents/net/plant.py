@@ -36,11 +36,16 @@ class PlantProcess(Role):
         self.members: set[int] = set()
         self.done: dict[int, dict[int, list[tuple[int, int]]]] = {}  # round -> agent -> (receiver, stamp)
         self.monitor_ack = -1
+        self.k = 0  # the round being run
         self.missed: Counter[int] = Counter()
         out_ids = {aid: {exp.agent_ids[j] for j in exp.out_neighbours(i)} for i, aid in enumerate(exp.agent_ids)}
         self.out_ids = out_ids
 
     def on_alive(self, role: str, i: int, alive: bool) -> None:
+        if role == "monitor":
+            log.info("plant: the monitor %s", "joined" if alive else "left; the team goes on without it")
+            if alive:  # a monitor (re)joining records from now on: acknowledged up to here
+                self.monitor_ack = max(self.monitor_ack, self.k - 1)
         if role == "agent" and not alive:
             self.ready.discard(i)
             if i in self.members:
@@ -120,6 +125,7 @@ class PlantProcess(Role):
         t0 = time.monotonic()
         round0_at = time.time()  # wall clock: start-up figures (command to round 0)
         for k in range(K + 1):
+            self.k = k
             joined = (self.ready & {a for (r, a) in self.alive if r == "agent"}) - self.members
             if joined:
                 self.members |= joined
@@ -148,8 +154,12 @@ class PlantProcess(Role):
                         if self.missed[a] in (1, 10, 100, 1000):
                             log.warning("plant: agent %d missed the %g s deadline in round %d (%d time(s))",
                                         a, cfg.deadline, k, self.missed[a])
-                if k - self.monitor_ack > MAX_AHEAD:
-                    if not await self.wait_for(lambda: k - self.monitor_ack <= MAX_AHEAD // 2, cfg.startup_timeout):
+                # the monitor only records: without it the team goes on (and a monitor that
+                # rejoins is waited for as it catches up)
+                monitor = ("monitor", 0)
+                if monitor in self.alive and k - self.monitor_ack > MAX_AHEAD:
+                    if not await self.wait_for(lambda: k - self.monitor_ack <= MAX_AHEAD // 2 or monitor not in self.alive,
+                                               cfg.startup_timeout):
                         raise TransportError(f"the monitor stopped acknowledging rounds (last {self.monitor_ack})")
             if period is not None:
                 delay = t0 + (k + 1) * period - time.monotonic()
