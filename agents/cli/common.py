@@ -41,12 +41,28 @@ def handle_errors(fn: Callable) -> Callable:
             error(describe(exc))
             sys.exit(exit_status(exc))
         except Exception as exc:  # a bug: say so plainly, traceback only on request
+            interrupt = _interrupt_within(exc)
+            if interrupt is not None:  # a Ctrl-C that Python wrapped (e.g. RuntimeError of __set_name__ in an import)
+                error(describe(interrupt))
+                sys.exit(exit_status(interrupt))
             if os.environ.get("RSE_DEBUG"):
                 raise
             error(describe(exc))
             sys.exit(EXIT_FAILED)
 
     return wrapper
+
+
+def _interrupt_within(exc: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt that caused ``exc``, if any (its cause / context chain)."""
+    seen = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
 
 
 def scenario_options(fn: Callable) -> Callable:

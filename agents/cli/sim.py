@@ -41,10 +41,10 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "summary.json").unlink(missing_ok=True)  # a new run: not the summary of an earlier one
     run_id = uuid.uuid4().hex[:12]
-    write_manifest(run_dir, exp, frozen, driver="simulate", run_id=run_id)
-    dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
     dash = None
     try:
+        write_manifest(run_dir, exp, frozen, driver="simulate", run_id=run_id)
+        dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
         if dopts is not None:
             from ..dashboard import Dashboard
 
