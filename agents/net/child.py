@@ -25,6 +25,7 @@ from estimation.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, 
 
 from .parent import die_with_parent as _die_with_parent
 from .protocol import RunConfig
+from .recording import claim, release
 
 log = logging.getLogger("rse.net")
 
@@ -87,11 +88,6 @@ def _open(opts: Any) -> Any:
         # our port was taken meanwhile: listen on any port; we still connect to the others
         return open_session(SessionOptions(mode="peer", listen=(tcp_endpoint(0),), connect=opts.connect))
 
-
-#: the file in the run directory naming the process id of the monitor recording the run
-MONITOR_PID = "monitor.pid"
-#: how long the launcher waits for a rejoined monitor to finish after the team stopped
-REJOINED_MONITOR_S = 30.0
 
 #: niceness increment of the monitor process (0: none)
 MONITOR_NICE = 10
@@ -169,8 +165,7 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
             from .monitor import run_monitor
 
             if out is not None:  # who records this run now (the launcher waits for a rejoined monitor)
-                out.mkdir(parents=True, exist_ok=True)
-                (out / MONITOR_PID).write_text(f"{os.getpid()}\n")
+                claim(out)
             res = await run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress, dashboard=dash,
                                     resume=spec.resume)
             if dash is not None and spec.dashboard.serve_web:
@@ -182,16 +177,8 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
         finally:
             if dash is not None:
                 dash.close()
-            if out is not None and not (out / "summary.json").exists():
-                # stopped before its rounds began: what earlier monitors recorded, or a header
-                from agents.recorder import salvage
-
-                with contextlib.suppress(Exception):
-                    salvage(out, exp, reason="interrupted")
             if out is not None:
-                with contextlib.suppress(OSError):
-                    if (out / MONITOR_PID).read_text().strip() == str(os.getpid()):
-                        (out / MONITOR_PID).unlink()
+                release(out, exp)
     finally:
         if watcher is not None:
             watcher.cancel()

@@ -45,8 +45,9 @@ from typing import Any
 
 from estimation.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError
 
-from .child import MONITOR_PID, REJOINED_MONITOR_S, ChildSpec, child_entry, group_label
+from .child import ChildSpec, child_entry, group_label
 from .protocol import RunConfig
+from .recording import complete_run_dir
 from .startup import PEER_RETRY_MS, agent_groups, bare_main, child_env, context, peer_links
 
 log = logging.getLogger("rse.net")
@@ -406,7 +407,7 @@ def launch(
         status = EXIT_INTERRUPTED
     elif failures:
         status = EXIT_FAILED
-    _complete_run_dir(run_dir, exp, plant_failed=plant_failed, stopping=bool(stopping), children=set(team.pids.values()))
+    complete_run_dir(run_dir, exp, plant_failed=plant_failed, stopping=bool(stopping), children=set(team.pids.values()))
     summary = None
     with contextlib.suppress(OSError, ValueError):
         summary = json.loads((run_dir / "summary.json").read_text())
@@ -414,42 +415,6 @@ def launch(
         failures.append("the monitor wrote no summary")
         status = EXIT_FAILED
     return LaunchResult(status, run_dir, run_id, summary, failures, leaves)
-
-
-def _complete_run_dir(run_dir: Path, exp: Any, *, plant_failed: str | None, stopping: bool, children: set[int]) -> None:
-    """Leave the run directory consistent whatever happened (:mod:`agents.recorder`).
-
-    A monitor that rejoined the team (``rse monitor --team``, not a child) is given
-    :data:`REJOINED_MONITOR_S` to finish; a run whose monitor is gone is completed from the
-    metrics it streamed (``complete: false``); a plant failure is named as the reason.
-    """
-    from agents.recorder import salvage
-    from agents.rundir import write_json
-
-    pid_file = run_dir / MONITOR_PID
-    end = time.monotonic() + REJOINED_MONITOR_S
-    while not stopping and not (run_dir / "summary.json").exists() and time.monotonic() < end:
-        try:
-            pid = int(pid_file.read_text().strip())
-            os.kill(pid, 0)
-        except (OSError, ValueError):
-            break  # no monitor is running
-        if pid in children:
-            break  # our own monitor, already stopped
-        time.sleep(0.1)
-    with contextlib.suppress(OSError):
-        pid_file.unlink()
-    reason = plant_failed or ("interrupted" if stopping else "no monitor was running at the end of the run")
-    try:
-        if salvage(run_dir, exp, reason=reason):
-            return
-        if plant_failed:
-            summary = json.loads((run_dir / "summary.json").read_text())
-            if summary.get("complete") is False:
-                summary["reason"] = f"{plant_failed} after round {summary.get('last_round')}"
-                write_json(run_dir / "summary.json", summary)
-    except (OSError, ValueError) as exc:
-        log.warning("could not complete the run directory %s: %s", run_dir, exc)
 
 
 ROUTER_START_S = 15.0  # how long the router child may take to open

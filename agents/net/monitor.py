@@ -270,7 +270,7 @@ class MonitorProcess(Role):
                 self.progress("round", (self.next_k - 1, self.mon.current_worst()))
 
     async def run(self) -> MonitorResult:
-        keys, bus, cfg, exp = self.keys, self.bus, self.cfg, self.exp
+        keys, bus = self.keys, self.bus
         bus.subscribe(keys.plant_truth(), self.queue)
         bus.subscribe(keys.ctl_pattern("done"), self.queue)
         bus.subscribe(keys.ctl_pattern("stats"), self.queue)
