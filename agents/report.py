@@ -77,8 +77,9 @@ def load_run(path: str | Path) -> RunData:
             partial = read_partial(p)
         except (OSError, ValueError) as exc:
             raise ScenarioError(f"unreadable run directory: {exc}", source=str(path)) from None
-    missing = [f for f in ("manifest.json", "metrics.parquet") if not (p / f).exists()
-               and not (f == "metrics.parquet" and partial is not None)]
+    has_metrics = (p / "metrics.parquet").exists() or partial is not None  # then a summary can be computed
+    missing = [f for f in ("manifest.json", "summary.json", "metrics.parquet") if not (p / f).exists()
+               and (f == "manifest.json" or not has_metrics)]
     if missing:
         raise ScenarioError(f"not a run directory: missing {', '.join(missing)}", source=str(path))
     try:
