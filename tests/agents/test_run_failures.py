@@ -2,8 +2,10 @@
 it; the monitor is not a single point of failure (the team goes on, a restarted monitor
 rejoins, the run directory covers every round but the gap).
 
-Paced at 100 Hz (dt = 0.01): a round is 10 ms of wall clock. Every wait is for an event
-(a file, a line printed), with generous timeouts.
+Lockstep paced at 100 Hz (dt = 0.01): a round is at least 10 ms of wall clock, and every
+agent's estimate of every round is recorded (realtime on a loaded machine leaves an agent
+late for a round now and then: NaN there, up to most rounds at a load average of 40 on two
+cores). Every wait is for an event (a file, a line printed), with generous timeouts.
 """
 
 from __future__ import annotations
@@ -92,7 +94,7 @@ class Lines:
 
 def test_a_killed_plant_ends_the_run_with_everything_recorded(procs, tmp_path):
     out = tmp_path / "run"
-    p = procs.start(rse_cmd("run", str(LKS), *RUN, "--mode", "realtime", "--out", str(out)))
+    p = procs.start(rse_cmd("run", str(LKS), *RUN, "--mode", "lockstep", "--out", str(out)))
     team = _wait_file(out / "team.json", 60)
     status = Status(out, p)
     status.wait_round(1500)
@@ -114,18 +116,13 @@ def test_a_killed_plant_ends_the_run_with_everything_recorded(procs, tmp_path):
     assert due >= 1000
     x = m[(m["block"] == "x") & (m["k"] <= due)]
     assert sorted(set(x["k"])) == list(range(due + 1))
-    # realtime on a loaded machine: an agent whose report is late for a round is NaN there
-    # (as in any realtime run); the rows of every round are there, nearly all finite
-    finite = float(np.isfinite(x["error_2"]).mean())
-    assert finite > 0.95, finite
+    assert np.isfinite(x["error_2"]).all()  # every agent's estimate of every round
     assert not (out / "metrics.partial").exists()
 
 
 def test_the_team_goes_on_without_its_monitor_and_a_restarted_one_rejoins(procs, tmp_path):
     out = tmp_path / "run"
-    # lockstep paced at 100 Hz: every agent's estimate of every round is recorded (realtime
-    # on a loaded machine leaves an agent late for a round now and then, NaN there), and a
-    # rejoining monitor goes through the plant's flow control
+    # lockstep: a rejoining monitor goes through the plant's flow control
     p = procs.start(rse_cmd("run", str(LKS), *RUN, "--mode", "lockstep", "--out", str(out)))
     err = Lines(p.stderr)
     team = _wait_file(out / "team.json", 60)
