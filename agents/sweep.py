@@ -217,7 +217,7 @@ def run_sweep(scenario: Path, grid_specs: list[str], *, seeds: int, jobs: int, o
     except BaseException:
         # interrupted: the table holds the points finished so far (the sweep resumes)
         if rows:
-            from .api import deferred_signals
+            from .runs import deferred_signals
 
             with deferred_signals():
                 write_table(out, rows, [k for k, _ in grid])
