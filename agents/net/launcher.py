@@ -414,6 +414,11 @@ def launch(
     if summary is None and status == EXIT_OK:
         failures.append("the monitor wrote no summary")
         status = EXIT_FAILED
+    elif summary is not None and summary.get("complete") is False and status == EXIT_OK:
+        # the team finished, but its record did not: no monitor ran at the end
+        failures.append(f"the run's record is incomplete: {summary.get('reason')} (rounds recorded up to "
+                        f"{summary.get('last_round')}; {run_dir / 'metrics.parquet'})")
+        status = EXIT_FAILED
     return LaunchResult(status, run_dir, run_id, summary, failures, leaves)
 
 
