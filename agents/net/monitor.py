@@ -172,8 +172,6 @@ class MonitorProcess(Role):
             if got is None:
                 return
             k = got[1].stamp
-            if not self.synced and 0 <= k <= K:
-                self._sync(k)
             if k > K or k < self.next_k:
                 self.rejects.add(PLANT_ID, "range")
                 return
@@ -214,7 +212,7 @@ class MonitorProcess(Role):
         self._close_rounds(final=False)
 
     def _sync(self, k: int) -> None:
-        """A rejoining monitor records from round ``k``, the first truth it receives."""
+        """A rejoining monitor records from round ``k``."""
         self.synced = True
         self.next_k = k
         for old in [j for j in self.rounds if j < k]:
@@ -236,7 +234,12 @@ class MonitorProcess(Role):
 
     def _close_rounds(self, final: bool) -> None:
         if not self.synced:
-            return
+            # a rejoining monitor starts at the first round it has whole (truth and every
+            # live agent's report): its subscriptions reach the team's peers one by one
+            first = next((k for k in sorted(self.rounds) if self._complete(self.rounds[k])), None)
+            if first is None:
+                return
+            self._sync(first)
         closed = False
         while True:
             k = self.next_k

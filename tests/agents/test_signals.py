@@ -303,7 +303,7 @@ def test_single_roles_in_a_running_team(tmp_path):
     the signal while they run rounds ends each within 2 s, the monitor's run directory
     says where it stopped, and the team goes on."""
     d = tmp_path / "run"
-    team_proc = Proc(rse_cmd("run", LKS, "--set", "run.dt=0.01", "--set", "run.duration=60", "--set", "expect=[]",
+    team_proc = Proc(rse_cmd("run", LKS, "--set", "run.dt=0.01", "--set", "run.duration=600", "--set", "expect=[]",
                              "--rate", "100", "--mode", "realtime", "--no-progress", "--no-rerun", "--out", str(d)))
     try:
         assert wait_until(lambda: _status_round(d) > 100, 120), team_proc.text
