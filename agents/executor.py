@@ -103,8 +103,10 @@ class LocalExecutor:
         for proc in procs:  # joined: no orphan, no zombie
             proc.join()
         # the pool sees its workers gone and fails every future left (cancelling them here
-        # as well races with that in CPython 3.11: an InvalidStateError, then a hang)
-        pool.shutdown(wait=True, cancel_futures=False)
+        # as well races with that in CPython 3.11: an InvalidStateError, then a hang); its
+        # management thread is not waited for either (it could wait on a dead worker's
+        # queue): the workers are gone, and the command exits right after this
+        pool.shutdown(wait=False, cancel_futures=False)
 
 
 def _ignore_sigint() -> None:

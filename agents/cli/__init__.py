@@ -62,6 +62,9 @@ def main() -> None:
         else:
             print(exc.code, file=sys.stderr)
             code = 1
+    except KeyboardInterrupt:  # a signal outside a command's own handling (while click dispatches)
+        print("error: interrupted", file=sys.stderr)
+        code = 130
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         try:

@@ -203,12 +203,18 @@ def test_rse_simulate_at_any_moment(tmp_path, serve):
 def test_rse_sweep_at_any_moment(tmp_path):
     took = []
     out = tmp_path / "sweep"
+    seen: set[Path] = set()  # what the earlier (interrupted) invocations left: a moment waits for something new
+
+    def new(pattern: str) -> Callable[[], bool]:
+        return lambda: bool(set((out / "points").glob(pattern)) - seen)
+
     moments = [
         ("start-up", lambda p: loading(p)),
-        ("runs under way", lambda p: wait_until(lambda: any((out / "points").glob("*/")), 120)),
-        ("a point done", lambda p: wait_until(lambda: any((out / "points").glob("*/point.json")), 240)),
+        ("runs under way", lambda p: loading(p) and wait_until(new("*/"), 120)),
+        ("a point done", lambda p: loading(p) and wait_until(new("*/point.json"), 240)),
     ]
     for n, (name, reach) in enumerate(moments):
+        seen = set((out / "points").glob("*/")) | set((out / "points").glob("*/point.json"))
         p = Proc(rse_cmd("sweep", LKS, "--grid", "run.seed=1,2,3,4,5,6", "--set", "run.duration=100", "--set",
                          "expect=[]", "-j", "2", "--out", str(out), "--no-png"))
         try:
