@@ -26,12 +26,11 @@ script) to get the same behaviour from Python.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
-from .runs import (RunResult, _override_strings, check, deferred_signals, ended_by, load, load_experiment, open_run,  # noqa: F401
-                   pin_blas_threads, simulate)
+from .runs import RunResult, _override_strings, check, deferred_signals, ended_by, load, load_experiment, open_run, pin_blas_threads, simulate
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -49,6 +48,8 @@ __all__ = [
     "RunResult",
     "pin_blas_threads",
     "load_experiment",
+    "deferred_signals",
+    "ended_by",
 ]
 
 

@@ -106,7 +106,7 @@ def median_interval(brackets: list[tuple[float, float]], level: float = LEVEL) -
     Nonparametric Statistics, 3rd ed., sec. 3.2), the lower end from the brackets' lower
     ends and the upper end from their upper ends."""
     N = len(brackets)
-    cdf = lambda r: sum(math.comb(N, i) for i in range(r)) / 2.0**N  # P(X < r)  # noqa: E731
+    cdf = lambda r: sum(math.comb(N, i) for i in range(r)) / 2.0**N  # P(X < r)
     r = 0
     while r + 1 <= N // 2 and 1 - 2 * cdf(r + 1) >= level:
         r += 1

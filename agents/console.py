@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any, Iterator
+from typing import Any
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -62,7 +63,7 @@ def round_progress(total: int, label: str, *, enabled: bool = True) -> Iterator[
 
 def summary_table(summary: dict, *, block: str = "x", title: str | None = None) -> Table:
     t = Table(title=title, title_justify="left")
-    for col in ("agent", "regular", "final |e|_inf", "final |e|_2 / |x|_2", f"window max |e|_inf", "converged at round"):
+    for col in ("agent", "regular", "final |e|_inf", "final |e|_2 / |x|_2", "window max |e|_inf", "converged at round"):
         t.add_column(col, justify="right")
     for aid, rec in summary["agents"].items():
         b = rec["blocks"].get(block, {})

@@ -29,8 +29,8 @@ import argparse
 import os
 import re
 import sys
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
 
 #: what ``rse router`` listens on without --listen (agents.net.router.DEFAULT_LISTEN)
 ROUTER_DEFAULT_PORT = 7447

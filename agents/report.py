@@ -239,7 +239,7 @@ def figure_errors(run: RunData, out: Path) -> Path:
                 ax.semilogy(t, v, lw=1.2, label=f"agent {aid}")
             else:
                 ax.semilogy(t, v, "--", color="tab:red", lw=1.0, label=f"agent {aid} (Byzantine)")
-        for when, what in _attack_times(run):
+        for when, _what in _attack_times(run):
             ax.axvline(when, color="k", ls=":", lw=0.8)
         ax.set_title(f"{blk}: {metric.replace('_', ' ')}")
         ax.grid(True, which="both", alpha=0.3)
@@ -272,7 +272,7 @@ def figure_states(run: RunData, out: Path) -> list[Path]:
             order = np.argsort(tr["t"][s])
             style = dict(color="k", lw=2.0) if series == "truth" else dict(lw=1.0)
             ax.plot(tr["t"][s][order], tr["value"][s][order], label=series, **style)
-        for when, what in _attack_times(run):
+        for when, _what in _attack_times(run):
             ax.axvline(when, color="k", ls=":", lw=0.8)
         ax.set_xlabel("t")
         ax.set_title(f"{run.name}: {name}, true state (black) and estimates")

@@ -6,8 +6,7 @@ import json
 import math
 import platform
 import sys
-import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -69,7 +68,7 @@ def write_manifest(run_dir: Path, exp: Experiment, frozen: dict, *, driver: str,
     write_json(run_dir / "manifest.json", {
         "run_id": run_id,
         "driver": driver,
-        "created": datetime.now(timezone.utc).isoformat(),
+        "created": datetime.now(UTC).isoformat(),
         "source": exp.source,
         "seed": exp.seed,
         "scenario": frozen,

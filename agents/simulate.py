@@ -15,8 +15,9 @@ Deterministic for a given seed.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
-from typing import Any, Callable
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -69,7 +70,7 @@ def make_channel(exp: Experiment) -> Channel:
         seed=exp.seed,
         drop_p=ch.drop_p,
         delay_max=ch.delay_max,
-        losses=loss_windows(((w.rounds, w.links) for w in ch.losses)),
+        losses=loss_windows((w.rounds, w.links) for w in ch.losses),
     )
 
 

@@ -21,10 +21,11 @@ import os
 import platform
 import subprocess
 import sys
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 FORMAT = "rse-benchmarks/1"
 ROOT = Path(__file__).resolve().parents[1]
@@ -133,7 +134,7 @@ def result_document(figures: Iterable[Figure], *, machine: dict[str, Any], git: 
         machine["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
     return {
         "format": FORMAT,
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "quick": quick,
         "sections": sections,
         "command": [Path(sys.executable).name, "-m", "benchmarks", *sys.argv[1:]],

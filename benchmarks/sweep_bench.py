@@ -18,6 +18,7 @@ a loaded machine only the ratio measured in one session means much.
 
 from __future__ import annotations
 
+import importlib.util
 import tempfile
 import time
 from pathlib import Path
@@ -106,11 +107,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1, help="measure the pair this many times")
     a = ap.parse_args()
     drop_ps = [round(i * a.step, 12) for i in range(int(round(0.9 / a.step)) + 1)]
-    try:
-        import distributed  # noqa: F401
-        dask = True
-    except ImportError:
-        dask = False
+    dask = importlib.util.find_spec("distributed") is not None
     for _ in range(a.repeat):  # each figure printed as soon as it is measured
         pool = measure_sweep(drop_ps, a.seeds, None, a.jobs, keep_expect=True)
         print(f"pool: {pool['runs']} runs in {pool['elapsed_s']:.1f} s, {pool['cpu_s']:.1f} CPU s", flush=True)

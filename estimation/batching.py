@@ -35,7 +35,8 @@ Contract (what makes the batched simulator equal to the per-agent one):
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, Hashable, Sequence
+from collections.abc import Hashable, Sequence
+from typing import Any
 
 import numpy as np
 

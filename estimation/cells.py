@@ -215,7 +215,8 @@ def diffusion(
                 continue
             break
         else:
-            raise DesignError(f"diffusion: cell {c + 1}: no connected location graph with distinct eigenvalues in {max_draws} draws (radius {radius}, cell_size {cell_size})")
+            raise DesignError(f"diffusion: cell {c + 1}: no connected location graph with distinct eigenvalues "
+                              f"in {max_draws} draws (radius {radius}, cell_size {cell_size})")
         blocks.append(np.eye(locations) - eps * L)
         positions.append(origins[c] + pts)
     rows = [list(np.eye(locations))] * K

@@ -68,7 +68,8 @@ Messages are ``N (n + 1)`` floats, against ``n`` for the sign-based solver.
 
 from __future__ import annotations
 
-from typing import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -179,7 +180,7 @@ class SignMedianAgent:
         if sign not in SIGNS:
             raise ValueError(f"sign must be one of {SIGNS}, got {sign!r}")
         self.n, self.dt = int(n), float(dt)
-        self._kw = dict(kappa=kappa, gamma=float(gamma), dt=self.dt, drift=drift, substeps=int(substeps), sign=sign)
+        self._kw: dict[str, Any] = dict(kappa=kappa, gamma=float(gamma), dt=self.dt, drift=drift, substeps=int(substeps), sign=sign)
         self.max_age = int(max_age)
         self._ref = reference
         self._xi: np.ndarray | None = None if x0 is None else np.array(x0, dtype=float).reshape(self.n)
@@ -201,6 +202,7 @@ class SignMedianAgent:
                 raise ValueError(f"rounds must increase, got k={k} after k={self._k}")
             oldest = k - 1 - self.max_age
             nb = [r.value for r in (inbox or {}).values() if r.stamp >= oldest]
+            assert self._xi is not None  # set with self._k
             xi = self._xi
             for kk in range(self._k, k):
                 shift = None if self._ref is None else np.asarray(self._ref(kk + 1), dtype=float) - self._ref(kk)
@@ -285,6 +287,7 @@ class FloodingMedian:
         self._rows[self.agent] = np.asarray(value, dtype=float).reshape(self.n)
         known = self._stamp >= 0
         if self._predict:
+            assert self._drift is not None  # prediction needs the drift (checked at construction)
             fresh = known & (self._stamp != self._pred_src)
             self._pred[fresh] = self._rows[fresh]
             self._pred_at[fresh] = self._pred_src[fresh] = self._stamp[fresh]

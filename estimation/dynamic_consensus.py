@@ -62,8 +62,8 @@ by a Nelder-Mead refinement (deterministic).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 
@@ -206,8 +206,8 @@ def design_consensus_gains(Adj, *, max_spectral_radius: float = 1.0 - 1e-9) -> C
             return 10.0
         return disagreement_spectral_radius(lambdas, k_phi=g, k_I=kI, k_P=kP)
 
-    G, CI, KP = np.meshgrid(np.linspace(0.1, 1.0, 10), np.geomspace(0.01, 1.0, 15), np.geomspace(0.05, 5.0, 9))
-    G, KI, KP = G.ravel(), CI.ravel() / lammax, KP.ravel()
+    grid = np.meshgrid(np.linspace(0.1, 1.0, 10), np.geomspace(0.01, 1.0, 15), np.geomspace(0.05, 5.0, 9))
+    G, KI, KP = grid[0].ravel(), grid[1].ravel() / lammax, grid[2].ravel()
     order = np.argsort(_rho_batch(lambdas, G, KI, KP), kind="stable")
     starts = [np.array([G[t], KI[t], KP[t]]) for t in order[:4]]
     r_best, x = rho(starts[0]), starts[0]

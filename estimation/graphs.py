@@ -8,7 +8,7 @@ as in Lee, Kim, Shim's ``L = D - A``.
 
 from __future__ import annotations
 
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 

@@ -51,8 +51,9 @@ it with ``numpy.savez`` and pass it back to :func:`design` (``cached=``) or
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -77,7 +78,7 @@ def _mat(x, name: str, shape: tuple[int | None, int | None] | None = None) -> np
     if a.ndim != 2 or not np.all(np.isfinite(a)):
         raise DesignError(f"{name} must be a finite 2-D matrix, got shape {np.shape(x)}")
     if shape is not None:
-        for k, (want, got) in enumerate(zip(shape, a.shape)):
+        for want, got in zip(shape, a.shape):
             if want is not None and want != got:
                 raise DesignError(f"{name} must have shape {shape} (None = any), got {a.shape}")
     return a
@@ -121,7 +122,7 @@ class ResilientProblem:
     edges: tuple = field(init=False)
 
     def __post_init__(self) -> None:
-        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # frozen dataclass
         A = _mat(self.A, "A")
         n = A.shape[0]
         if A.shape != (n, n):
@@ -172,8 +173,8 @@ class ResilientProblem:
         Hc = {e: _mat(self.Hc[e], f"Hc{e}", (W[e].shape[0], None)) for e in edges}
         Z = {e: _mat(self.Z[e], f"Z{e}", (W[e].shape[0], W[e].shape[0])) for e in edges}
         Zb = {e: _mat(self.Zbar[e], f"Zbar{e}", (W[e].shape[0], W[e].shape[0])) for e in edges}
-        for name, d in (("Z", Z), ("Zbar", Zb)):
-            for e, z in d.items():
+        for name, zs in (("Z", Z), ("Zbar", Zb)):
+            for e, z in zs.items():
                 if np.linalg.eigvalsh(0.5 * (z + z.T))[0] <= 0:
                     raise DesignError(f"{name}{e} must be symmetric positive definite")
         for k, v in (("W", W), ("H", H), ("Hc", Hc), ("Z", Z), ("Zbar", Zb)):
@@ -331,7 +332,8 @@ def _solve(problem, which, U, Z, *, gamma2, margin, solver):
         raise InfeasibleError(_diagnose(problem, which, U, Z, status=status, gamma2=gamma2,
                                         margin=margin, solver=solver))
     gv = float(g.value) if gamma2 is None else float(gamma2)
-    out = {"gamma2": gv, "R": {}, "Q": {}}
+    Rs: dict[int, np.ndarray] = {}
+    Qs: dict[int, np.ndarray] = {}
     for i in range(problem.N):
         if which == "det":
             ne = problem.ne(i)
@@ -340,9 +342,9 @@ def _solve(problem, which, U, Z, *, gamma2, margin, solver):
             Rb[problem.n:, problem.n:] = Rc[i].value
         else:
             Rb = R[i].value
-        out["R"][i] = 0.5 * (Rb + Rb.T)
-        out["Q"][i] = 0.5 * (Q[i].value + Q[i].value.T)
-    return out
+        Rs[i] = 0.5 * (Rb + Rb.T)
+        Qs[i] = 0.5 * (Q[i].value + Q[i].value.T)
+    return {"gamma2": gv, "R": Rs, "Q": Qs}
 
 
 def _diagnose(problem, which, U, Z, *, status, gamma2, margin, solver) -> str:
@@ -467,8 +469,8 @@ def closed_form_design(
     stationary solution (so ``Y(t)`` is constant), and a node without a positive definite
     stabilising solution raises :class:`DesignError` naming it. ``Q_i = gamma2 Y_s^-1``.
     """
-    from .hinf_riccati import stabilizing_solution
     from .errors import NumericalError
+    from .hinf_riccati import stabilizing_solution
 
     if not (gamma2 > 0 and gamma2_bar > 0 and alpha > 0):
         raise DesignError(f"gamma2, gamma2_bar and alpha must be > 0, got {gamma2}, {gamma2_bar}, {alpha}")
@@ -478,7 +480,8 @@ def closed_form_design(
     Mb = coupling_matrices(problem, Ub, problem.Zbar)
     r = gamma2 * max(np.linalg.eigvalsh(-M)[-1], 0.0) + alpha
     rb = max(np.linalg.eigvalsh(problem.P - gamma2_bar * Mb)[-1], 0.0) + alpha
-    det, obs = {"gamma2": gamma2, "R": {}, "Q": {}}, {"gamma2": gamma2_bar, "R": {}, "Q": {}}
+    det: dict[str, Any] = {"gamma2": gamma2, "R": {}, "Q": {}}
+    obs: dict[str, Any] = {"gamma2": gamma2_bar, "R": {}, "Q": {}}
     for i in range(problem.N):
         ne = problem.ne(i)
         rc = np.linalg.eigvalsh(problem.Upsilon[i].T @ problem.Upsilon[i])[-1] + alpha
@@ -598,7 +601,10 @@ def select_graph(
     oc = design_kwargs.get("observer_channel", "H")
     margin = design_kwargs.get("margin", 1e-7)
     solver = design_kwargs.get("solver", "CLARABEL")
-    gam, run, best, reasons = [], [], None, []
+    gam: list[float] = []
+    run: list[float] = []
+    reasons: list[str] = []
+    best = None
     for m, pb in enumerate(candidates):
         U, Ub = pb.channel_weights(observer_channel=oc)
         UU, ZZ = (U, pb.Z) if which == "det" else (Ub, pb.Zbar)

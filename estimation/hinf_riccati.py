@@ -34,7 +34,7 @@ up to rounding, whatever ``h``. A singular ``I + G Delta`` is a finite escape ti
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

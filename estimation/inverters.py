@@ -53,8 +53,8 @@ so the droop controllers and the sensors both see it, as in (7).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
 
 import numpy as np
 

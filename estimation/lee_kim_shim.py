@@ -37,8 +37,8 @@ sent to distinct real poles ``real_part * (1, 1.25, 1.5, ...)``. (The paper's li
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -47,7 +47,7 @@ from .batching import Batch, Batchable
 from .errors import DesignError
 from .graphs import algebraic_connectivity
 from .lti import zoh, zoh_integral
-from .observability import CommonBasis, common_basis, redundancy_violations
+from .observability import CommonBasis, common_basis
 
 VARIANTS = ("median", "lyapunov", "linear")
 

@@ -46,8 +46,8 @@ fuse modal coordinates; converting to ``x`` and back would cost ``O(n^2)`` per m
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 

@@ -16,7 +16,8 @@ rounding of 0 and then the two paths part).
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -121,6 +122,7 @@ class LKSBatch(Batch):
             s = int(self._zoff[-1])
             M, H, G = self._matrices(tuple(len(nb) for nb in self.in_neighbours), (True,) * len(self.members))
             rows = self.rows
+            assert rows is not None  # the closed round is taken only with static rows
             width = 1 + max((int(r.max()) for r in rows if r.size), default=-1)
             Mc = np.zeros((s, s + p + width))
             Mc[:, :s] = M[:, :s]
@@ -129,7 +131,7 @@ class LKSBatch(Batch):
                     Mc[:, j * n:(j + 1) * n] += M[:, s + m * n:s + (m + 1) * n]
             Mc[:, s:s + p] = M[:, s + Mn:s + Mn + p]
             c = s + Mn + p
-            for m, r in enumerate(rows):
+            for r in rows:
                 Mc[:, s + p + r] += M[:, c:c + r.size]
                 c += r.size
             self._closed = (Mc, H, G)
@@ -138,6 +140,7 @@ class LKSBatch(Batch):
     # ------------------------------------------------------------------- rounds
     def _pull_closed_y(self) -> None:
         if self._closed_y is not None:
+            assert self.rows is not None
             self._y = [np.asarray(self._closed_y[r], dtype=float) for r in self.rows]
             self._closed_y = None
 

@@ -20,7 +20,8 @@ the flags are bit-identical to the per-node path (the equivalence test asserts i
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -88,9 +89,9 @@ class MaoBatch(Batch):
             with np.errstate(invalid="ignore", divide="ignore"):
                 resid = np.where(scale > 0, r / scale, 0.0)
             newly = check & (r > rtol * scale)
-            for i in np.flatnonzero(check):
+            for i in map(int, np.flatnonzero(check)):
                 wins[i].last_residual = float(resid[i])
-            for i in np.flatnonzero(newly):
+            for i in map(int, np.flatnonzero(newly)):
                 wins[i].flagged, wins[i].flag_round = True, int(k)
             flagged = flagged | newly
         value = np.where(full & (~have | flagged), pred, yv)

@@ -49,6 +49,7 @@ tolerances are used).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -284,7 +285,7 @@ def design_mao_tabuada(
 def check_report(design: MaoTabuadaDesign, *, x0_norm: float | None = None) -> dict:
     """What ``rse check`` reports for this algorithm (plain JSON-able values)."""
     d, g = design.detectability, design.gains
-    out = {
+    out: dict[str, Any] = {
         "p": design.p,
         "n": design.n,
         "s": design.s,
@@ -482,7 +483,7 @@ def example() -> MaoTabuadaExample:
         ]
     )
     p = 8
-    edges = tuple(sorted({tuple(sorted((i, (i + d) % p))) for i in range(p) for d in (1, 2)}))
+    edges = tuple(sorted({(min(i, (i + d) % p), max(i, (i + d) % p)) for i in range(p) for d in (1, 2)}))
     Adj = np.zeros((p, p))
     for i, j in edges:
         Adj[i, j] = Adj[j, i] = 1.0

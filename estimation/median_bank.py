@@ -47,7 +47,8 @@ conventional ``max_rate = 0.2 / dt``.
 from __future__ import annotations
 
 import warnings
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -171,7 +172,7 @@ def design_bank(plant: LurePlant, *, slack: float = 1e-3) -> dict:
     ``lmi_max_eig`` (N,), and ``slack`` (float). ``np.savez(**bank)`` stores it.
     """
     ds = [design_observer(plant, sensors=[i], slack=slack) for i in range(plant.N)]
-    out = {k: np.stack([d[k] for d in ds]) for k in ("L", "K", "P", "U")}
+    out: dict[str, Any] = {k: np.stack([d[k] for d in ds]) for k in ("L", "K", "P", "U")}
     for k in ("mu_d", "mu_a", "mu_d_opt", "nu", "lmi_max_eig"):
         out[k] = np.array([d[k] for d in ds], dtype=float)
     out["slack"] = float(slack)
@@ -404,7 +405,7 @@ def run_central(plant: LurePlant, *, bank: dict, conventional: dict, dt: float, 
                         x0=np.broadcast_to(np.asarray(xhat0, dtype=float), (plant.N, plant.n))[0])
     x = np.array(x0, dtype=float).reshape(plant.n)
     T = steps + 1
-    out = {k: np.zeros((T, plant.n)) for k in ("x", "median", "conventional", "static")}
+    out: dict[str, np.ndarray] = {k: np.zeros((T, plant.n)) for k in ("x", "median", "conventional", "static")}
     out["bank"] = np.zeros((T, plant.N, plant.n))
     out["y"] = np.zeros((T, plant.N))
     out["t"] = dt * np.arange(T)

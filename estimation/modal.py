@@ -29,9 +29,8 @@ a diagonal ``A`` keeps its state order (``V = I``).
 from __future__ import annotations
 
 import functools
-
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 

@@ -88,7 +88,7 @@ def max_erasure_probability(*, rho: float, m: int, f: int, xtol: float = 1e-14) 
         raise DesignError(f"spectral radius rho must be finite and >= 0, got {rho!r}")
     if rho <= 1.0:
         return 1.0
-    g = lambda p: rho**2 * effective_erasure_probability(p, m=m, f=f) - 1.0  # noqa: E731
+    g = lambda p: rho**2 * effective_erasure_probability(p, m=m, f=f) - 1.0
     if g(0.0) >= 0.0:
         return 0.0
     return float(brentq(g, 0.0, 1.0, xtol=xtol))

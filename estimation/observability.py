@@ -27,9 +27,9 @@ The common basis is computed in general (not hard-coded for a plant):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import combinations
-from typing import Sequence
 
 import numpy as np
 
@@ -52,7 +52,7 @@ def unobservable_subspace(C: np.ndarray, A: np.ndarray) -> np.ndarray:
         if Q.shape[1] == 0:
             return Q
         R = A @ Q - Q @ (Q.T @ (A @ Q))  # component of A Q outside span(Q)
-        scale = max(np.linalg.norm(A, 2), 1.0)
+        scale = max(float(np.linalg.norm(A, 2)), 1.0)
         # absolute threshold relative to ||A||: R may be all round-off
         _, sv, vt = np.linalg.svd(R, full_matrices=True)
         rank = int(np.sum(sv > 1e-9 * scale))

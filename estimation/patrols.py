@@ -19,8 +19,8 @@ round is O(1).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -95,7 +95,7 @@ class Patrol:
 
     def visits(self, start: int, stop: int) -> list[tuple[int, int]]:
         """Visits ``(round, location)`` with ``start <= round < stop``, in time order."""
-        out = []
+        out: list[tuple[int, int]] = []
         for loc, t, per in zip(self.locations, self.offsets, self.periods):
             q0 = max(0, -(-(start - t) // per))
             out.extend((t + q * per, loc) for q in range(q0, max(q0, -(-(stop - t) // per))))
@@ -106,9 +106,9 @@ def first_collision(tau_a: int, T_a: int, tau_b: int, T_b: int) -> int | None:
     """First round visited by both schedules ``tau_a + q T_a`` and ``tau_b + q T_b``, or None."""
     if (tau_a - tau_b) % math.gcd(T_a, T_b):
         return None
-    k = max(tau_a, tau_b)
+    start = max(tau_a, tau_b)
     L = math.lcm(T_a, T_b)
-    for k in range(k, k + L):
+    for k in range(start, start + L):
         if (k - tau_a) % T_a == 0 and (k - tau_b) % T_b == 0:
             return k
     return None  # unreachable: the CRT guarantees a solution within one lcm
@@ -220,15 +220,15 @@ def cell_patrols(
     -------
     list of Patrol, agent ``c * agents_per_cell + a`` at index of the same number.
     """
-    loc_cell = np.asarray(loc_cell, dtype=int)
-    K = int(loc_cell.max()) + 1 if loc_cell.size else 0
+    cells = np.asarray(loc_cell, dtype=int)
+    K = int(cells.max()) + 1 if cells.size else 0
     if len(periods) != K:
         raise DesignError(f"cell_patrols: {len(periods)} periods given for {K} cells")
     if agents_per_cell < 1:
         raise DesignError(f"cell_patrols: agents_per_cell must be >= 1, got {agents_per_cell}")
     out = []
     for c in range(K):
-        locs = [int(l) for l in np.flatnonzero(loc_cell == c)]
+        locs = [int(l) for l in np.flatnonzero(cells == c)]
         T = int(periods[c])
         if T < len(locs):
             raise DesignError(f"cell {c + 1}: period {T} is shorter than its {len(locs)} locations; no feasible patrol visits each once per period")

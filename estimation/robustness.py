@@ -28,9 +28,9 @@ levels, so Definition 2 holds. Using ``r = m f + 1`` gives the MEDAG of Theorem 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from itertools import combinations
-from typing import Iterable, Sequence
 
 import numpy as np
 

@@ -29,7 +29,7 @@ class Signal:
 
     @classmethod
     def sine(cls, p: int, *, amplitude=1.0, omega=1.0, phase=0.0, offset=0.0) -> "Signal":
-        f = lambda v: np.broadcast_to(np.asarray(v, dtype=float), (p,)).copy()  # noqa: E731
+        f = lambda v: np.broadcast_to(np.asarray(v, dtype=float), (p,)).copy()
         return cls("sine", p, f(offset), f(amplitude), f(omega), f(phase))
 
     @classmethod

@@ -162,7 +162,8 @@ def sparse_detectability(A, C, *, k: int, D=None, tol: float = 1e-9) -> Detectab
     nC = max(np.linalg.norm(C, 2), 1e-300)
     mus = _unstable_eigenvalues(A)
     DC = D @ C / nC
-    worst, worst_V = np.inf, ()
+    worst = np.inf
+    worst_V: tuple[int, ...] = ()
     for V in combinations(range(p), k):
         N = _annihilator(D[:, list(V)])
         LDC = N @ DC

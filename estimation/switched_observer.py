@@ -44,8 +44,8 @@ estimate of that mode is taken from the first location in patrol order that obse
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 

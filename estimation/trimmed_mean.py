@@ -155,11 +155,11 @@ def average(values: np.ndarray, *, weights: np.ndarray | None = None, axis: int 
 def fuse(values: np.ndarray, *, fusion: str, f: int) -> np.ndarray:
     """Fused value per row of ``values (..., F, d)`` (NaN = missing); NaN if too few present."""
     if fusion == "trimmed":
-        return trimmed_mean(values, f=f, short="nan")
+        return np.asarray(trimmed_mean(values, f=f, short="nan"))
     if fusion == "median":
-        return median(values, f=f, short="nan")
+        return np.asarray(median(values, f=f, short="nan"))
     if fusion == "average":
-        return average(values, short="nan")
+        return np.asarray(average(values, short="nan"))
     raise DesignError(f"unknown fusion {fusion!r}; expected one of {', '.join(FUSIONS)}")
 
 
@@ -200,10 +200,10 @@ def fuse_blocks(values: list[np.ndarray | None], *, fusion: str, f: int) -> list
     got = fuse(stacked, fusion=fusion, f=f)
     out: list[np.ndarray | None] = []
     row = 0
-    for v in values:
-        if v is None:
+    for block in values:
+        if block is None:
             out.append(None)
         else:
-            out.append(got[row:row + v.shape[0]])
-            row += v.shape[0]
+            out.append(got[row:row + block.shape[0]])
+            row += block.shape[0]
     return out

@@ -45,7 +45,7 @@ advances from ``t_{k-1}`` to ``t_k``):
 
 from __future__ import annotations
 
-from typing import Callable, Mapping
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
@@ -203,7 +203,7 @@ class _NodeBase(Batchable):
                                     W=[np.hstack([Wj, np.zeros((Wj.shape[0], self._ne))]) for Wj in W], U=self._U)
             Lh, Lc, Kh, Kc = split_detector_gains(Lb_, Kb_, n=n)  # (36), (31)
             Lbar, Kbar = difference_gains(Lh, Kh, L, K)  # (44)
-            KW = lambda Ks: sum((Kj @ Wj for Kj, Wj in zip(Ks, W)), np.zeros((Ks[0].shape[0] if Ks else 0, n)))  # noqa: E731
+            KW = lambda Ks: sum((Kj @ Wj for Kj, Wj in zip(Ks, W)), np.zeros((Ks[0].shape[0] if Ks else 0, n)))
             M[X, Eps] = -F @ Ups
             M[E, X] = -Lbar @ C - (KW(Kbar) if K else 0.0)
             M[E, E] = pb.A - Lh @ C - (KW(Kh) if K else 0.0)
@@ -239,6 +239,7 @@ class _NodeBase(Batchable):
             self._disc = (E[:d, :d].copy(), E[:d, d:].copy())
             self._ref = tuple((fl.deviation.copy(), self.gain_rtol * np.linalg.norm(fl.Y)) for fl in flows)
             self.refreshes += 1
+        assert self._disc is not None
         return self._disc
 
     # -- one round ------------------------------------------------------------------------
@@ -263,9 +264,9 @@ class _NodeBase(Batchable):
         c, eta = [], []
         for j in self._nb:
             W = pb.W[(i, j)]
-            v = self._last.get(j)
-            xj = xh if v is None else v[:n]
-            ej = eh if (v is None or not self._controlled) else v[n:]
+            heard = self._last.get(j)
+            xj = xh if heard is None else heard[:n]
+            ej = eh if (heard is None or not self._controlled) else heard[n:]
             c.append(W @ xj)
             eta.append(W @ ej)
         t0 = self.t

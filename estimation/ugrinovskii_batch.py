@@ -15,7 +15,8 @@ so the estimates equal the per-node path's within 1e-12 relative, not bit for bi
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

@@ -20,7 +20,7 @@ import rse
 
 rse.pin_blas_threads()  # before numpy is loaded: one BLAS thread, as the rse command does
 
-import pandas as pd  # noqa: E402  (after the BLAS setting, on purpose)
+import pandas as pd
 
 HERE = Path(__file__).resolve().parent
 SCENARIOS = HERE.parent / "scenarios"

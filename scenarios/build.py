@@ -12,8 +12,7 @@ are public in :mod:`scenarios.helpers`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -27,9 +26,16 @@ from estimation.signals import Signal
 
 from . import plugins
 from .common import (  # noqa: F401  (re-exported for the drivers and tests)
-    STREAM_AGENT_X0, STREAM_GRAPH, STREAM_PLANT_X0, STREAM_SENSOR_ATTACK, ByzantineSpec, Condition, PlantModel, rng_for,
+    STREAM_AGENT_X0,
+    STREAM_GRAPH,
+    STREAM_PLANT_X0,
+    STREAM_SENSOR_ATTACK,
+    ByzantineSpec,
+    Condition,
+    PlantModel,
+    rng_for,
 )
-from .helpers import explicit_AB, init_vector, matrix  # noqa: F401  (public here too: the plugins' helpers)
+from .helpers import explicit_AB, init_vector, matrix
 from .schema import Scenario
 
 

@@ -15,7 +15,7 @@ from typing import Annotated, Literal, Union
 from pydantic import Field, model_validator
 
 from .plugins import estimator_sections, plant_model_names
-from .types import Init, Matrix, Strict, UniformInit, Vector, ZeroInit, ValueInit  # noqa: F401
+from .types import Init, Matrix, Strict, UniformInit, ValueInit, Vector, ZeroInit  # noqa: F401  (the schema's types, importable from here)
 
 
 # --------------------------------------------------------------------------- [run]
@@ -153,7 +153,7 @@ class AttachmentGraph(Strict):
     preferential: bool = True
 
 
-Graph = Annotated[Union[RingGraph, CompleteGraph, EdgesGraph, CellsGraph, AttachmentGraph], Field(discriminator="kind")]
+Graph = Annotated[RingGraph | CompleteGraph | EdgesGraph | CellsGraph | AttachmentGraph, Field(discriminator="kind")]
 
 
 class LossWindow(Strict):
@@ -173,7 +173,7 @@ class NetworkSection(Strict):
 
 
 # --------------------------------------------------------------------------- [estimator]
-Estimator = Annotated[Union[estimator_sections()], Field(discriminator="algorithm")]  # type: ignore[valid-type]
+Estimator = Annotated[Union[estimator_sections()], Field(discriminator="algorithm")]  # type: ignore[valid-type]  # noqa: UP007  (a union built at run time from the registered algorithms)
 
 
 # --------------------------------------------------------------------------- [[attacks]]
@@ -219,7 +219,7 @@ class AgentAttack(Strict):
     payload: Literal["estimate", "huge"] = "huge"
 
 
-Attack = Annotated[Union[SensorAttack, AgentAttack], Field(discriminator="target")]
+Attack = Annotated[SensorAttack | AgentAttack, Field(discriminator="target")]
 
 
 # --------------------------------------------------------------------------- [output] / [[expect]]

@@ -3,7 +3,7 @@ algorithm plugins in :mod:`scenarios.plugins`)."""
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -37,4 +37,4 @@ class ZeroInit(Strict):
     kind: Literal["zero"] = "zero"
 
 
-Init = Annotated[Union[UniformInit, ValueInit, ZeroInit], Field(discriminator="kind")]
+Init = Annotated[UniformInit | ValueInit | ZeroInit, Field(discriminator="kind")]

@@ -3,7 +3,7 @@ import os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # as the rse command does
     os.environ.setdefault(_var, "1")
 
-import shutil  # noqa: E402
+import shutil
 import subprocess
 import sys
 import tomllib

@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 import pickle
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from unittest import mock
 
@@ -62,7 +62,7 @@ class Recorder:
         return out
 
 
-@lru_cache(maxsize=None)
+@cache
 def run(name: str, *overrides: str):
     """Build and simulate a scenario (cached): ``(exp, result, recorders)``."""
     sc, _ = load(SC / name, list(overrides))

@@ -5,7 +5,7 @@ sensor-attack kind (dynamics-consistent attacks)."""
 import asyncio
 import json
 import re
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +32,7 @@ def experiment(*overrides, check=True):
     return build(sc, source=str(SC), check_conditions=check)
 
 
-@lru_cache(maxsize=None)
+@cache
 def run(*overrides):
     """``(exp, result, relative errors (rounds, agents), summary)``."""
     exp = experiment(*overrides)

@@ -99,9 +99,10 @@ def test_mobile_agents_read_only_where_they_are():
 
 
 def test_patrol_validation_errors_name_the_agent():
+    import tomllib
+
     from estimation.errors import ScenarioError
     from scenarios.loader import validate
-    import tomllib
 
     raw = tomllib.loads((SC / "mitra_cells.toml").read_text())
     raw["agents"] = [{"patrol": {"locations": [1, 2], "offsets": [0, 0], "periods": [2, 2]}}]

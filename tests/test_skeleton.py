@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from agents.api import load_experiment
+from benchmarks.zenoh_skeleton import run_skeleton, sizes_for
 
-from agents.api import load_experiment  # noqa: E402
-from benchmarks.zenoh_skeleton import run_skeleton, sizes_for  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_sizes_carry_the_adversarys_pattern() -> None:

@@ -28,7 +28,7 @@ from scenarios.loader import load, validate
 
 pytest.importorskip("cvxpy")
 
-from scenarios.plugins import ugrinovskii as plugin  # noqa: E402
+from scenarios.plugins import ugrinovskii as plugin
 
 SC = Path(__file__).resolve().parents[1] / "scenarios"
 BIASING = SC / "ugrinovskii_biasing.toml"

@@ -21,8 +21,8 @@ import datetime as _dt
 import ipaddress
 import os
 import re
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Iterable, Sequence
 
 from transport.secure import CA_FILE, validate_identity
 
@@ -134,7 +134,7 @@ def write_certs(
     if not os.access(d, os.W_OK | os.X_OK):
         raise PermissionError(13, "Permission denied (not writable)", str(d))
 
-    now = _dt.datetime.now(_dt.timezone.utc)
+    now = _dt.datetime.now(_dt.UTC)
     start, end = now - _dt.timedelta(minutes=5), now + _dt.timedelta(days=days)
     ca_key = ec.generate_private_key(ec.SECP256R1())
     ca_name = x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, "resilient-state-estimation"),

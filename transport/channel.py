@@ -18,8 +18,8 @@ so the outcome does not depend on the order in which links are queried.
 from __future__ import annotations
 
 from array import array
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
 
 import numpy as np
 

@@ -33,9 +33,10 @@ from __future__ import annotations
 import math
 import re
 import sys
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any, Mapping, Sequence, Union
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -105,10 +106,10 @@ _F8 = np.dtype("<f8")
 _MAX_ARRAY_LEN = 2 * MAX_NDIM  # the longest msgpack array is a shape (or a [shape, data] pair)
 _MAX_MAP_LEN = max(MAX_FIELDS, MAX_META, len(_ALLOWED))
 
-ShapeSpec = tuple[Union[int, None], ...]
+ShapeSpec = tuple[int | None, ...]
 """An expected shape: ints are exact, ``None`` accepts any length along that axis."""
 
-MetaValue = Union[str, int, float, bool]
+MetaValue = str | int | float | bool
 
 _EMPTY: Mapping[str, Any] = MappingProxyType({})
 
@@ -144,11 +145,11 @@ def _check_kind(value: object) -> str:
 
 
 def _check_meta(meta: object) -> Mapping[str, MetaValue]:
-    if type(meta) is not dict:
+    if not isinstance(meta, dict) or type(meta) is not dict:
         raise _fail("type", f"meta must be a map, got {type(meta).__name__}")
-    if len(meta) > MAX_META:  # type: ignore[arg-type]
-        raise _fail("keys", f"meta has {len(meta)} entries, at most {MAX_META}")  # type: ignore[arg-type]
-    for key, value in meta.items():  # type: ignore[attr-defined]
+    if len(meta) > MAX_META:
+        raise _fail("keys", f"meta has {len(meta)} entries, at most {MAX_META}")
+    for key, value in meta.items():
         if type(key) is not str or not _NAME_RE.match(key):
             raise _fail("keys", f"meta key {key!r:.40} is not a name")
         tv = type(value)
@@ -163,7 +164,7 @@ def _check_meta(meta: object) -> Mapping[str, MetaValue]:
                 raise _fail("type", f"meta[{key!r}] is longer than {MAX_STR_LEN} characters")
         elif tv is not bool:
             raise _fail("type", f"meta[{key!r}] must be str, int, float or bool, got {tv.__name__}")
-    return meta  # type: ignore[return-value]
+    return meta
 
 
 def _all_finite(a: np.ndarray) -> bool:
@@ -270,7 +271,7 @@ class Message:
         return (
             (self.version, self.kind, self.sender, self.stamp, self.receiver)
             == (other.version, other.kind, other.sender, other.stamp, other.receiver)
-            and dict(self.meta) == dict(other.meta)
+            and dict(self.meta or {}) == dict(other.meta or {})
             and self.arrays.keys() == other.arrays.keys()
             and all(
                 self.arrays[n].shape == other.arrays[n].shape

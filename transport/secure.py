@@ -22,9 +22,10 @@ policies}``; a rule's key expression must *include* a message's key expression t
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 __all__ = [
     "CA_FILE",

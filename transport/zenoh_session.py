@@ -34,8 +34,9 @@ import logging
 import re
 import socket
 import threading
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import zenoh
 
@@ -207,7 +208,7 @@ def _secure_endpoint(endpoint: str) -> str:
 def _seq(value: object, what: str) -> Sequence[str]:
     if isinstance(value, str) or not isinstance(value, Iterable):
         raise ValueError(f"{what} must be a sequence of endpoints, got {value!r}")
-    return tuple(value)  # type: ignore[arg-type]
+    return tuple(value)
 
 
 def make_config(

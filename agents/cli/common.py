@@ -9,13 +9,13 @@ from __future__ import annotations
 import functools
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import click
 
-from estimation.errors import (EXIT_BAD_INPUT, EXIT_EXPECTATION, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError,
-                               ScenarioError, describe, exit_status)
+from estimation.errors import EXIT_BAD_INPUT, EXIT_EXPECTATION, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError, describe, exit_status
 
 from ..api import load_experiment
 

@@ -55,8 +55,7 @@ def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output
     """
     from transport.keys import validate_run_id
 
-    from ..compose import DEFAULT_IMAGE, GRPC_PORT, ROUTER_HOST, ROUTER_PORT, WEB_PORT, command_line, compose_spec
-    from ..compose import default_run_id, render
+    from ..compose import DEFAULT_IMAGE, GRPC_PORT, ROUTER_HOST, ROUTER_PORT, WEB_PORT, command_line, compose_spec, default_run_id, render
     from ..compose import write_team as write_team_files
 
     image = image if image is not None else DEFAULT_IMAGE

@@ -17,8 +17,17 @@ import click
 
 from estimation.errors import ExpectationFailed, RSEError, ScenarioError
 
-from .common import (EXIT_INTERRUPTED, dashboard_options, handle_errors, load_experiment, rerun_options,
-                     scenario_options, secure_files, sigterm_interrupts, wait_while_serving)
+from .common import (
+    EXIT_INTERRUPTED,
+    dashboard_options,
+    handle_errors,
+    load_experiment,
+    rerun_options,
+    scenario_options,
+    secure_files,
+    sigterm_interrupts,
+    wait_while_serving,
+)
 
 
 def _run_options(fn: Callable) -> Callable:
@@ -211,7 +220,7 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
     sigterm_interrupts()  # a signal before the role's own handlers are up ends it the same way
     ctx = click.get_current_context()
     data: dict[str, Any] = load_team(team) if team is not None else {}
-    src = lambda name: ctx.get_parameter_source(name) == click.core.ParameterSource.DEFAULT  # noqa: E731
+    src = lambda name: ctx.get_parameter_source(name) == click.core.ParameterSource.DEFAULT
     scenario = scenario or (Path(data["scenario"]) if data.get("scenario") else None)
     if scenario is None:
         raise ScenarioError("give SCENARIO (or --team RUN_DIR/team.json)")

@@ -11,8 +11,7 @@ import click
 from estimation.errors import EXIT_FAILED, EXIT_OK, ExpectationFailed
 
 from .. import api
-from .common import (dashboard_options, handle_errors, load_experiment, rerun_options, scenario_options,
-                     sigterm_interrupts, wait_while_serving)
+from .common import dashboard_options, handle_errors, load_experiment, rerun_options, scenario_options, sigterm_interrupts, wait_while_serving
 
 
 @click.command()
@@ -31,7 +30,8 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
     recording recording.rrd, prints the summary table and each [expect] bound with its
     measured value.
     """
-    from ..console import expectations_table, out as console, round_progress, summary_table
+    from ..console import expectations_table, round_progress, summary_table
+    from ..console import out as console
     from ..recorder import incomplete_summary, regular_mask
     from ..rundir import default_run_dir, write_json, write_manifest
 

@@ -7,9 +7,10 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -18,8 +19,7 @@ from transport.codec import MONITOR_ID, PLANT_ID, Message
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import (ACK_EVERY, MONITOR_LAG, Rejects, Role, RunConfig, _msg, diagnostics_from_meta, maxrss_mb,
-                       uss_mb, who_name)
+from .protocol import ACK_EVERY, MONITOR_LAG, Rejects, Role, RunConfig, _msg, diagnostics_from_meta, maxrss_mb, uss_mb, who_name
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -335,12 +335,12 @@ class MonitorProcess(Role):
             self.changed.clear()
             try:
                 await asyncio.wait_for(self.changed.wait(), 0.25)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 pass
         K = self.stop_round
         await self.wait_for(lambda: self.next_k > K or (K in self.rounds and self._complete(self.rounds[K])), cfg.deadline)
         self._close_rounds(final=True)
-        agents_alive = lambda: {str(a) for (r, a) in self.alive if r == "agent"}  # noqa: E731
+        agents_alive = lambda: {str(a) for (r, a) in self.alive if r == "agent"}
         await self.wait_for(lambda: "plant" in self.stats and agents_alive() <= set(self.stats), cfg.linger)
         return self._finish()
 

@@ -145,7 +145,7 @@ class PlantProcess(Role):
             if lockstep:
                 expected = set(self.members)
                 rnd = self.done[k]
-                finished = await self.wait_for(lambda: all(a in rnd or a not in self.members for a in expected),
+                finished = await self.wait_for(lambda rnd=rnd, expected=expected: all(a in rnd or a not in self.members for a in expected),
                                                cfg.deadline)
                 if not finished:
                     late = sorted(a for a in expected if a not in rnd and a in self.members)
@@ -158,7 +158,7 @@ class PlantProcess(Role):
                 # rejoins is waited for as it catches up)
                 monitor = ("monitor", 0)
                 if monitor in self.alive and k - self.monitor_ack > MAX_AHEAD:
-                    if not await self.wait_for(lambda: k - self.monitor_ack <= MAX_AHEAD // 2 or monitor not in self.alive,
+                    if not await self.wait_for(lambda k=k, monitor=monitor: k - self.monitor_ack <= MAX_AHEAD // 2 or monitor not in self.alive,
                                                cfg.startup_timeout):
                         raise TransportError(f"the monitor stopped acknowledging rounds (last {self.monitor_ack})")
             if period is not None:

@@ -23,8 +23,9 @@ import logging
 import re
 import signal
 import threading
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 from estimation.errors import ScenarioError
 

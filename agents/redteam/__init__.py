@@ -14,6 +14,7 @@ violating candidate), :mod:`.output` (bound, tables, scenario files, figure, liv
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import time
@@ -51,10 +52,7 @@ def redteam(scenario: str | Path, *, budget: int = 200, jobs: int = 1, cluster: 
     from .. import runs  # the one-run core (agents.api re-exports it)
     from ..executor import open_executor
 
-    try:
-        import optuna  # noqa: F401
-        import tomli_w  # noqa: F401
-    except ImportError:
+    if importlib.util.find_spec("optuna") is None or importlib.util.find_spec("tomli_w") is None:
         raise RSEError("rse redteam needs optuna and tomli-w: pip install -e '.[redteam]'") from None
     from . import output
     from .search import Evaluator, open_study, search

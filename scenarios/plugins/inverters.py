@@ -49,7 +49,12 @@ from estimation.inverters import InverterNetwork, InverterParams, droop_slope_bo
 from estimation.lti import ContinuousLTI
 from estimation.lure import LurePlant
 from estimation.median_bank import (
-    LureObserver, MedianBank, check_report, design_bank, design_conventional, static_inversion,
+    LureObserver,
+    MedianBank,
+    check_report,
+    design_bank,
+    design_conventional,
+    static_inversion,
 )
 from estimation.median_solver import theorem1_bound
 

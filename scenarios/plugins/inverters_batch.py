@@ -10,7 +10,8 @@ Estimates equal the per-agent path's within 1e-12 relative (stacked products).
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

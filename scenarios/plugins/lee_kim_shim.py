@@ -9,7 +9,8 @@ from pydantic import Field
 
 from estimation import graphs
 from estimation.errors import DesignError, ScenarioError
-from estimation.lee_kim_shim import LeeKimShim, LKSDesign, design as lks_design, theorem3_bound
+from estimation.lee_kim_shim import LeeKimShim, LKSDesign, theorem3_bound
+from estimation.lee_kim_shim import design as lks_design
 from estimation.median_solver import theorem1_bound
 from estimation.observability import redundancy_violations
 

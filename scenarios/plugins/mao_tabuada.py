@@ -32,7 +32,12 @@ from estimation.base import Diagnostics
 from estimation.dynamic_consensus import ConsensusGains, design_consensus_gains, disagreement_spectral_radius
 from estimation.errors import DesignError, ScenarioError
 from estimation.mao_tabuada import (
-    SIGNAL_LIMIT, MaoTabuadaDesign, MaoTabuadaEstimator, check_report, design_mao_tabuada, safe_horizon,
+    SIGNAL_LIMIT,
+    MaoTabuadaDesign,
+    MaoTabuadaEstimator,
+    check_report,
+    design_mao_tabuada,
+    safe_horizon,
 )
 from estimation.sparse_detectability import design_compression, sparse_detectability
 

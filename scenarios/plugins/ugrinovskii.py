@@ -41,7 +41,8 @@ from pydantic import Field, model_validator
 from estimation import graphs
 from estimation.base import Diagnostics, Flags
 from estimation.errors import DesignError, NumericalError, ScenarioError
-from estimation.hinf_lmi import ResilientProblem, closed_form_design, design as lmi_design, node_riccati_data
+from estimation.hinf_lmi import ResilientProblem, closed_form_design, node_riccati_data
+from estimation.hinf_lmi import design as lmi_design
 from estimation.hinf_riccati import RiccatiFlow
 from estimation.lti import ContinuousLTI, zoh
 from estimation.ugrinovskii import UgrinovskiiBaseline, UgrinovskiiNode, first_order_attack_model
@@ -460,7 +461,7 @@ def design(exp: "Experiment", *, check: bool = True) -> UgrinovskiiDesign | None
     for (i, _), specs in _attack_specs(exp).items():  # validate the attacks and noise before the (slow) design
         AttackSignal(specs, problem.F[i].shape[1], dt=exp.dt, seed=exp.seed, source=source)
     for name, mats in (("channel_noise", problem.H), ("controller_noise", problem.Hc)):
-        for e, M in list(mats.items())[:1]:
+        for _e, M in list(mats.items())[:1]:
             DisturbanceSignal(getattr(est, name), M.shape[1], dt=exp.dt, seed=exp.seed, stream=(), where=f"estimator.{name}",
                               source=source)
     key = _key(problem, est)
@@ -655,7 +656,7 @@ def _is_paper_example(exp: "Experiment", pb: ResilientProblem, *, detector: bool
     ref = example_problem(detector_attack=est.detector_attack_matrix == "F")
     if (pb.n, pb.N) != (ref.n, ref.N) or pb.neighbours != ref.neighbours or est.observer_channel != "H_hat":
         return False
-    same = lambda a, b: a.shape == b.shape and np.allclose(a, b, rtol=0, atol=1e-12)  # noqa: E731
+    same = lambda a, b: a.shape == b.shape and np.allclose(a, b, rtol=0, atol=1e-12)
     if not all(same(getattr(pb, m), getattr(ref, m)) for m in ("A", "B", "P")):
         return False
     for m in ("C", "D", "F", "Fc", "Omega", "Gamma", "Upsilon"):

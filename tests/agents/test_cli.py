@@ -1,7 +1,6 @@
 """The command line as a user meets it: exit statuses, messages, no tracebacks."""
 
 import json
-from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest

@@ -133,7 +133,7 @@ def test_two_teams_at_once_equal_the_simulator_with_bad_bytes_injected(procs, tm
     outs = [p.communicate(timeout=max(1.0, 55 - (time.monotonic() - t0))) for p in (pa, pb)]
     so, se = inj.communicate(timeout=10)
     assert inj.returncode == 0 and int(so) > 0, se
-    for p, (so, se) in zip((pa, pb), outs):
+    for p, (_so, se) in zip((pa, pb), outs):
         assert p.returncode == 0, se
         assert "Traceback" not in se
     _compare(a, LKS, tuple(lossy[1::2]), tmp_path / "sim-a")

@@ -40,7 +40,8 @@ import shutil
 import signal
 import subprocess
 import time
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 PREFIX = "rsenet"
 _OPEN: list["Net"] = []

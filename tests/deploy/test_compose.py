@@ -29,7 +29,7 @@ import pytest
 import yaml
 
 from tests.conftest import ROOT, SCENARIOS
-from tests.deploy.conftest import child_env, rse_cmd
+from tests.deploy.conftest import rse_cmd
 
 MITRA = SCENARIOS / "mitra_cells.toml"
 LKS = SCENARIOS / "lee_kim_shim.toml"

@@ -34,6 +34,7 @@ namespaces on every path.
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -183,8 +184,8 @@ class Team:
                 continue
             try:
                 codes[name] = p.wait(timeout=self.left())
-            except Exception:
-                raise AssertionError(f"{name} did not exit within the case's {CASE_S:g} s: {self.log(name)[-2000:]}")
+            except subprocess.TimeoutExpired:
+                raise AssertionError(f"{name} did not exit within the case's {CASE_S:g} s: {self.log(name)[-2000:]}") from None
         for name, code in codes.items():
             assert code == 0, f"{name}: exit status {code}: {self.log(name)[-2000:]}"
             assert "Traceback" not in self.log(name), self.log(name)

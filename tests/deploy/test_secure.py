@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import json
 import signal
-import threading
 import time
 from pathlib import Path
 
@@ -116,7 +115,7 @@ def test_without_credentials_nothing_connects_or_gets_through(net, certs, tmp_pa
         "no certificate": no_cert,
         "plain tcp": SessionOptions.client([f"tcp/127.0.0.1:{port}"]),
     }
-    for what, opts in attempts.items():
+    for _what, opts in attempts.items():
         s = None
         try:
             with pytest.raises(TransportError):

@@ -105,7 +105,7 @@ def test_drift_tracks_moving_values():
         return a * x + 80.0 * (3 * np.cos(3 * t) - a * np.sin(3 * t))
 
     Adj = _line(5)
-    targets = lambda k: truth(k) + offsets  # noqa: E731
+    targets = lambda k: truth(k) + offsets
     with_f = _team(Adj, targets, steps=1500, dt=dt, kappa=2.0, gamma=20.0, drift=f)
     # a common reference with the same motion (any offset): xi moves with it
     with_r = _team(Adj, targets, steps=1500, dt=dt, kappa=2.0, gamma=20.0, reference=lambda k: np.array([truth(k) + 7.0]))
@@ -166,7 +166,7 @@ def _flood_team(Adj, values, *, steps, predict=False, drift=None, dt=0.1):
 
 def test_flooding_knows_every_row_after_the_diameter_and_takes_the_exact_median():
     Adj = _line(5)
-    vals = lambda k: np.arange(5.0)[:, None] * np.array([[1.0, -2.0]]) + k  # noqa: E731
+    vals = lambda k: np.arange(5.0)[:, None] * np.array([[1.0, -2.0]]) + k
     ags, est = _flood_team(Adj, vals, steps=6)
     for a in ags:
         assert np.all(a.stamps >= 0)
@@ -179,10 +179,10 @@ def test_flooding_knows_every_row_after_the_diameter_and_takes_the_exact_median(
 
 def test_flooding_prediction_removes_the_staleness_of_a_known_motion():
     a = -0.3
-    drift = lambda t, X: a * X  # noqa: E731  (batched: (m, n) -> (m, n))
+    drift = lambda t, X: a * X  # batched: (m, n) -> (m, n)
     dt = 0.1
     base = np.array([[1.0], [4.0], [2.0], [8.0], [-3.0]])
-    vals = lambda k: base * np.exp(a * k * dt)  # noqa: E731
+    vals = lambda k: base * np.exp(a * k * dt)
     _, est = _flood_team(_line(5), vals, steps=10, predict=True, drift=drift, dt=dt)
     _, stale = _flood_team(_line(5), vals, steps=10)
     exact = np.median(vals(10), axis=0)

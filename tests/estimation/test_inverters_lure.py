@@ -13,8 +13,8 @@ DT = 0.01  # the inverter scenario's round length
 
 
 def test_rk4_is_fourth_order_on_a_smooth_system():
-    f = lambda t, x: np.array([x[1], -x[0] + np.cos(t)])  # noqa: E731
-    exact = lambda t: np.array([0.5 * t * np.sin(t), 0.5 * (np.sin(t) + t * np.cos(t))])  # noqa: E731
+    f = lambda t, x: np.array([x[1], -x[0] + np.cos(t)])
+    exact = lambda t: np.array([0.5 * t * np.sin(t), 0.5 * (np.sin(t) + t * np.cos(t))])
     errs = []
     for h in (0.1, 0.05):
         x = np.zeros(2)
@@ -46,7 +46,7 @@ def test_integrate_validates_substeps():
 
 
 def test_plant_build_validates_shapes():
-    w = lambda t: np.zeros(2)  # noqa: E731
+    w = lambda t: np.zeros(2)
     with pytest.raises(ValueError, match="square"):
         LurePlant.build(A=np.zeros((2, 3)), H=np.eye(2), phi=np.tanh, slope_upper=1.0, w=w)
     with pytest.raises(ValueError, match="H must be"):

@@ -38,7 +38,7 @@ def test_modes_are_the_spectrum_of_the_whole_system():
 def test_stable_gains_form_a_bounded_window():
     g = design_consensus_gains(example().Adj)
     lams = np.array([g.lambda_2, g.lambda_max])
-    rho = lambda kI: disagreement_spectral_radius(lams, k_phi=g.k_phi, k_I=kI, k_P=g.k_P)  # noqa: E731
+    rho = lambda kI: disagreement_spectral_radius(lams, k_phi=g.k_phi, k_I=kI, k_P=g.k_P)
     assert rho(g.k_I) < 1
     assert rho(g.k_I * 1e-3) < 1  # small gains stay stable ...
     assert rho(g.k_I * 1e-3) > rho(g.k_I)  # ... but slow

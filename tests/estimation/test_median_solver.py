@@ -2,7 +2,8 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from estimation.graphs import algebraic_connectivity, complete, ring
 from estimation.median_solver import median_set, run_scalar_median_solver, sgn_median_term, theorem1_bound

@@ -49,7 +49,7 @@ def run(rule, *, attack=huge, drop=0.0, rounds=ROUNDS, delay=0, stamp=None, seed
     for k in range(rounds):
         if delay == 0:
             inboxes = [dict() for _ in range(N)]  # only this round's deliveries
-        for arrival, i, rec in [p for p in pending if p[0] == k]:
+        for _arrival, i, rec in [p for p in pending if p[0] == k]:
             old = inboxes[i].get(rec.sender)
             if old is None or rec.stamp >= old.stamp or rec.sender == ADV:
                 inboxes[i][rec.sender] = rec

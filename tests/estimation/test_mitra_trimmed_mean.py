@@ -6,8 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimation.errors import DesignError
-from estimation.trimmed_mean import fuse, fuse_block
-from estimation.trimmed_mean import average, median, trimmed_mean
+from estimation.trimmed_mean import average, fuse, fuse_block, median, trimmed_mean
 
 finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False, allow_infinity=False)
 hostile = st.one_of(

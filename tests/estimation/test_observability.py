@@ -24,7 +24,7 @@ def test_item4_basis_exists(star):
     lam = 2.0
     A = np.array([[lam, 0, 0], [0, lam, 1], [0, 0, lam]])
     C = rows([[1, 1, star], [1, -1, star], [2, 2, star]])
-    v1, v2, v3 = np.array([1.0, 1, 0]), np.array([1.0, -1, 0]), np.array([0.0, 0, 1])
+    v1, v2, _v3 = np.array([1.0, 1, 0]), np.array([1.0, -1, 0]), np.array([0.0, 0, 1])
     U = [unobservable_subspace(c, A) for c in C]
     assert spans(U[0], [v2]) and spans(U[2], [v2]) and spans(U[1], [v1])
     b = common_basis(A, C)

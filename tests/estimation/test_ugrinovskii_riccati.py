@@ -89,7 +89,7 @@ def test_flow_matches_an_accurate_ode_solution():
     Y0 = np.array([[2.0, 0.3], [0.3, 1.0]])
     dt = 0.01
     flow = RiccatiFlow(A=A, B=B, S=S, R=R, gamma2=g2, Y0=Y0, dt=dt)
-    f = lambda t, y: riccati_rhs(y.reshape(2, 2), A=A, B=B, S=S, R=R, gamma2=g2).ravel()  # noqa: E731
+    f = lambda t, y: riccati_rhs(y.reshape(2, 2), A=A, B=B, S=S, R=R, gamma2=g2).ravel()
     sol = solve_ivp(f, (0.0, 2.0), Y0.ravel(), method="Radau", rtol=1e-11, atol=1e-13,
                     t_eval=np.arange(1, 201) * dt)
     got = np.array([flow.step() for _ in range(200)])

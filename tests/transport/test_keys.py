@@ -140,7 +140,7 @@ def test_bad_builder_arguments(call):
         "rse",
         f"rse/{RUN}",
         f"xyz/{RUN}/plant/truth",
-        f"rse/bad run/plant/truth",
+        "rse/bad run/plant/truth",
         f"rse/{RUN}/plant",
         f"rse/{RUN}/plant/loc",
         f"rse/{RUN}/plant/loc/x",

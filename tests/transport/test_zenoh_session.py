@@ -122,7 +122,7 @@ async def _next(queue: asyncio.Queue, publish, timeout: float = DEADLINE_S):
         publish()
         try:
             return await asyncio.wait_for(queue.get(), 0.1)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             continue
     raise AssertionError(f"nothing received within {timeout} s")
 
