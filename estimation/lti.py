@@ -15,6 +15,7 @@ O(dt) in the input only (tests compare with a 10x finer step).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -155,14 +156,15 @@ def three_inertia(*, J: float = 0.01, b: float = 0.007, k: float = 1.37) -> Cont
 FLOAT_SIGNAL_LIMIT = 1e150
 
 
-def float_horizon(Ad: np.ndarray, *, x_norm: float, limit: float = FLOAT_SIGNAL_LIMIT, max_rounds: int) -> int:
+def float_horizon(Ad: np.ndarray, *, x_norm: float, limit: float = FLOAT_SIGNAL_LIMIT, max_rounds: int,
+                  norm: Literal["fro"] | int = "fro") -> int:
     """The last round ``k <= max_rounds`` up to which ``||Ad^j|| x_norm <= limit`` for every
     ``j <= k``: how long an unstable plant's state stays representable (``max_rounds``
     when it does for the whole horizon).
 
     ``||Ad^j||`` is accumulated in log scale (the running product is renormalised each
-    step), measured in the Frobenius norm, an upper bound of the 2-norm (conservative). Once
-    ``||Ad^j||_F < 1`` the powers can never again exceed the largest one seen before
+    step), measured by default in the Frobenius norm, an upper bound of the 2-norm
+    (conservative; ``norm=2`` for the 2-norm itself). Once ``||Ad^j|| < 1`` the powers can never again exceed the largest one seen before
     (``||Ad^(q j + r)|| <= ||Ad^r||``), so a stable plant returns after a few steps.
 
     Parameters
@@ -179,7 +181,7 @@ def float_horizon(Ad: np.ndarray, *, x_norm: float, limit: float = FLOAT_SIGNAL_
     P, log_scale = np.eye(A.shape[0]), 0.0
     for k in range(1, max_rounds + 1):
         P = A @ P
-        nP = float(np.linalg.norm(P))
+        nP = float(np.linalg.norm(P, norm))
         if nP == 0.0:
             return max_rounds
         log_scale += np.log(nP)

@@ -57,6 +57,7 @@ from .base import Flags, Inbox
 from .batching import Batch, Batchable
 from .dynamic_consensus import ConsensusGains, ConsensusNode, design_consensus_gains
 from .errors import DesignError, NumericalError
+from .lti import float_horizon
 from .secure_decoder import SecureDecoder, least_squares_decode
 from .sparse_detectability import DetectabilityReport, design_compression, sparse_detectability
 
@@ -103,21 +104,9 @@ def window_observability(A, C) -> np.ndarray:
 
 def safe_horizon(A, *, x0_norm: float, limit: float = SIGNAL_LIMIT, max_rounds: int = 10**6) -> int:
     """Last round ``k`` with ``||A^k||_2 x0_norm <= limit`` (capped at ``max_rounds``)."""
-    A = np.asarray(A, dtype=float)
     if not x0_norm > 0:
         raise DesignError(f"x0_norm must be positive, got {x0_norm}")
-    budget = np.log(limit / x0_norm)
-    P, log_scale = np.eye(A.shape[0]), 0.0
-    for k in range(1, max_rounds + 1):
-        P = A @ P
-        nP = np.linalg.norm(P, 2)
-        if nP == 0:
-            return max_rounds
-        log_scale += np.log(nP)
-        P /= nP
-        if log_scale > budget:
-            return k - 1
-    return max_rounds
+    return float_horizon(np.asarray(A, dtype=float), x_norm=x0_norm, limit=limit, max_rounds=max_rounds, norm=2)
 
 
 class MeasurementWindow:

@@ -168,3 +168,13 @@ def test_importing_the_cli_loads_no_numerics():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == ""
+
+
+MAX_LINES = 500  # STYLE.md / the developers' guide: modules stay small (about 400 lines, 500 at most)
+
+
+def test_no_module_of_the_project_is_over_500_lines():
+    sizes = {name: len(path.read_text().splitlines()) for name, path in project_modules().items()}
+    assert len(sizes) > 100, sorted(sizes)  # the walk found the project
+    over = {name: n for name, n in sizes.items() if n > MAX_LINES}
+    assert not over, f"modules over {MAX_LINES} lines: {over}"

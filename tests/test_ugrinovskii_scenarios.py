@@ -29,6 +29,7 @@ from scenarios.loader import load, validate
 pytest.importorskip("cvxpy")
 
 from scenarios.plugins import ugrinovskii as plugin
+from scenarios.plugins import ugrinovskii_design
 
 SC = Path(__file__).resolve().parents[1] / "scenarios"
 BIASING = SC / "ugrinovskii_biasing.toml"
@@ -276,7 +277,7 @@ def test_design_is_cached_and_picklable(tmp_path, controlled):
     write_design(tmp_path, exp)
     data = json.loads((tmp_path / "design.json").read_text())
     assert data["algorithm"] == "ugrinovskii" and data["lmi"]["gamma2"] == pytest.approx(float(exp.design.result["gamma2"]))
-    plugin._MEMO.clear()
+    ugrinovskii_design._MEMO.clear()
     sc, _ = load(BIASING, [f"estimator.design_cache={tmp_path / 'design.json'}"])
     again = build(sc, source="x")
     assert again.design.source == f"file {tmp_path / 'design.json'}"
@@ -286,13 +287,13 @@ def test_design_is_cached_and_picklable(tmp_path, controlled):
     npz = tmp_path / "cache" / "design.npz"
     sc, _ = load(BIASING, [f"estimator.design_cache={npz}"])
     assert build(sc, source="x").design.source == "memory" and npz.exists()
-    plugin._MEMO.clear()
+    ugrinovskii_design._MEMO.clear()
     assert build(sc, source="x").design.source == f"file {npz}"
     # a cache that fails the check against the problem is an error naming the failed block
     res = dict(np.load(npz))
     res["R_0"] = -res["R_0"]
     np.savez(npz, **res)
-    plugin._MEMO.clear()
+    ugrinovskii_design._MEMO.clear()
     with pytest.raises(ScenarioError, match=r"estimator: design check: R_0 > 0 fails"):
         build(sc, source="x")
     # another problem's design.json is refused
