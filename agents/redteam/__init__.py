@@ -48,6 +48,7 @@ def redteam(scenario: str | Path, *, budget: int = 200, jobs: int = 1, cluster: 
     ``summary.json``) and every evaluation (also ``redteam.parquet``).
     """
     from estimation.errors import RSEError
+    from scenarios.loader import read_toml
 
     from .. import runs  # the one-run core (agents.api re-exports it)
     from ..executor import open_executor
@@ -85,7 +86,7 @@ def redteam(scenario: str | Path, *, budget: int = 200, jobs: int = 1, cluster: 
     t0 = time.perf_counter()
     try:
         with open_executor(jobs, cluster) as ex:
-            ev = Evaluator(ex, source, base, space, spec)
+            ev = Evaluator(ex, read_toml(source), source, base, space, spec)
             study = open_study(out_dir, seed, budget)
             resumed = sum(1 for t in study.get_trials(deepcopy=False) if "row" in t.user_attrs)
             rows = search(ev, study, budget=budget, batch=jobs, on_eval=seen)

@@ -41,16 +41,17 @@ def metric_value(exp: Any, res: Any, spec: MetricSpec) -> float:
     return _nanmax(data[np.ix_(rounds, cols, bcols)])
 
 
-def evaluate(source: str, overrides: Sequence[str], spec: MetricSpec) -> dict[str, Any]:
+def evaluate(scenario: dict[str, Any], source: str, overrides: Sequence[str], spec: MetricSpec) -> dict[str, Any]:
     """One candidate: load the scenario with ``overrides``, simulate, return the metric
-    (a worker task: module-level, picklable arguments)."""
+    (a worker task: module-level, picklable arguments; ``scenario`` is the scenario as
+    data, since a cluster's worker may not have the file ``source`` names)."""
     from estimation.errors import ScenarioError
 
     from .. import runs  # the one-run core (agents.api re-exports it)
 
     t0 = time.perf_counter()
     try:
-        exp = runs.load(source, set=list(overrides))
+        exp = runs.load(scenario, set=list(overrides), source=source)
         res = runs.simulate(exp)
         value, status = metric_value(exp, res, spec), "ok"
     except ScenarioError as exc:
@@ -63,14 +64,16 @@ def evaluate(source: str, overrides: Sequence[str], spec: MetricSpec) -> dict[st
 class Evaluator:
     """Evaluates lists of candidates on an open executor, in order."""
 
-    def __init__(self, executor: Any, source: str, base: Sequence[str], space: Space, spec: MetricSpec) -> None:
-        self.ex, self.source, self.base, self.space, self.spec = executor, source, tuple(base), space, spec
+    def __init__(self, executor: Any, scenario: dict[str, Any], source: str, base: Sequence[str], space: Space,
+                 spec: MetricSpec) -> None:
+        self.ex, self.scenario, self.source = executor, scenario, source
+        self.base, self.space, self.spec = tuple(base), space, spec
 
     def overrides(self, cand: dict[str, Any]) -> list[str]:
         return list(self.base) + self.space.overrides(cand)
 
     def __call__(self, cands: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-        tasks = [(self.source, self.overrides(c), self.spec) for c in cands]
+        tasks = [(self.scenario, self.source, self.overrides(c), self.spec) for c in cands]
         out: list[dict[str, Any] | None] = [None] * len(tasks)
         for i, r in self.ex.map(evaluate, tasks):
             out[i] = r
