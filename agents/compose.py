@@ -77,10 +77,10 @@ def write_team(exp: Any, out: Path, *, scenario: str, run_id: str, connect: str,
     --team out/team.json`` reads (as after ``rse run``). Returns the team file."""
     import json
 
+    from agents.middleware import make_channel, make_nodes
     from agents.net.launcher import Team
     from agents.net.protocol import RunConfig
     from agents.net.slices import agent_slices, write_slices
-    from agents.simulate import make_channel, make_nodes
 
     out = Path(out)
     write_slices(out / "team", agent_slices(exp, make_nodes(exp, make_channel(exp))))

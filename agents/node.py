@@ -16,6 +16,8 @@ import numpy as np
 from estimation.base import EstimatePayload, Received
 from transport.channel import Channel, LinkCounters
 
+from .rounds import count_fate
+
 
 class AgentNode:
     """One agent's round logic.
@@ -48,7 +50,7 @@ class AgentNode:
         self.round: int | None = None
         self._perfect = channel.perfect
         #: Byzantine middleware (None for an honest agent): ``strategy(k, estimate, node)``
-        self.strategy = None
+        self.strategy: Any = None
 
     def receive(self, sender: int, stamp: int, value: np.ndarray) -> None:
         """A message from ``sender`` stamped ``stamp`` reached this agent."""
@@ -57,12 +59,9 @@ class AgentNode:
             return
         c.sent += 1
         when = stamp + 1 if self._perfect else self.channel.fate(sender, self.id, stamp)
+        count_fate(c, when, stamp)
         if when is None:
-            c.dropped += 1
             return
-        c.delivered += 1
-        if when > stamp + 1:
-            c.late += 1
         self._pending.setdefault(when, []).append(Received(self.index_of[sender], stamp, value))
 
     def reject(self, sender: int) -> None:

@@ -30,6 +30,7 @@ import numpy as np
 import pyarrow as pa
 
 from .monitor import Monitor
+from .rounds import regular_mask
 
 PARTIAL = "metrics.partial"
 
@@ -38,11 +39,6 @@ SCHEMA = pa.schema([
     ("error_2", pa.float64()), ("error_inf", pa.float64()), ("relative_error_2", pa.float64()),
     ("truth_norm", pa.float64()),
 ])
-
-
-def regular_mask(exp: Any) -> np.ndarray:
-    """``(N,)`` bool: the agents that are not Byzantine."""
-    return np.array([i not in exp.byzantine for i in range(exp.N)])
 
 
 class MetricsStream:

@@ -164,11 +164,9 @@ class RunResult:
 
 
 def _summarise_sim(exp: Experiment, res: Any) -> tuple[dict[str, Any], list[ExpectationResult]]:
-    from .summary import evaluate, summarise
+    from .summary import summarise_run
 
-    results = evaluate(exp, res.monitor, res.regular)
-    summary = summarise(exp, res.monitor, res.regular, res.links)
-    summary["expectations"] = [r.as_dict() for r in results]
+    summary, results = summarise_run(exp, res.monitor, res.links)
     summary["performance"] = {"elapsed_s": res.elapsed, "agent_rounds_per_s": res.agent_rounds_per_s}
     return summary, results
 

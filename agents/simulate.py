@@ -21,16 +21,18 @@ from typing import Any
 
 import numpy as np
 
-from estimation.base import MaskedInputs
 from estimation.batching import Batch, Batchable
 from scenarios.build import Experiment
-from transport.byzantine import Forged
-from transport.channel import Channel, loss_windows
+from transport.channel import Channel
 
-from .middleware import byzantine_strategy
+from .middleware import make_channel, make_nodes
 from .monitor import Monitor, has_diagnostics, read_diagnostics
 from .node import AgentNode
+from .omniscient import NodesView, reads_view, view_topology
 from .plant import PlantRole
+from .rounds import DashboardFeed, Reads, addressed, links_of, receiver_counters, regular_mask, round_order
+
+__all__ = ["SimResult", "batch_groups", "closed_team", "deliver", "make_channel", "make_nodes", "simulate"]
 
 
 def batch_groups(exp: Experiment, nodes: list[AgentNode]) -> list[Batch]:
@@ -64,62 +66,13 @@ def closed_team(exp: Experiment, nodes: list[AgentNode], groups: list[Batch], ch
     return groups[0]
 
 
-def make_channel(exp: Experiment) -> Channel:
-    ch = exp.scenario.network.channel
-    return Channel(
-        seed=exp.seed,
-        drop_p=ch.drop_p,
-        delay_max=ch.delay_max,
-        losses=loss_windows((w.rounds, w.links) for w in ch.losses),
-    )
-
-
-def make_nodes(exp: Experiment, channel: Channel) -> list[AgentNode]:
-    index_of = {aid: i for i, aid in enumerate(exp.agent_ids)}
-    nodes = []
-    for i, aid in enumerate(exp.agent_ids):
-        node = AgentNode(aid, exp.make_estimator(i), channel, [exp.agent_ids[j] for j in exp.in_neighbours(i)],
-                         index_of=index_of, out_neighbours=[exp.agent_ids[j] for j in exp.out_neighbours(i)])
-        node.strategy = byzantine_strategy(exp, i)  # fresh: a strategy keeps state (its RNG, history)
-        nodes.append(node)
-    return nodes
-
-
-class SimulatorView:
-    """The omniscient adversary's view in the simulator: every message of the round.
-
-    Byzantine agents run after the regular ones in each round, so the messages the
-    regular agents sent in round ``k`` are known when an adversary computes its own.
-    A receiver's estimator may say which payload components a sender's value feeds
-    (``uses(sender_index) -> bool mask``, e.g. per-mode MEDAG neighbours); the others are
-    zeroed.
-    """
-
-    def __init__(self, nodes: list[AgentNode]) -> None:
-        self._by_id = {n.id: n for n in nodes}
-        self.k = 0
-
-    def others_for(self, receiver: int, sender: int) -> list[np.ndarray]:
-        node = self._by_id[receiver]
-        uses = node.estimator.uses if isinstance(node.estimator, MaskedInputs) else None
-        out = []
-        for r in node.pending_from_others(self.k, sender):
-            v = np.asarray(r.value, dtype=float)
-            out.append(v * uses(r.sender) if uses is not None else v)
-        return out
-
-
-def deliver(node: AgentNode, k: int, msg, targets: list[AgentNode]) -> None:
-    """Hand ``node``'s round-``k`` message(s) to its out-neighbours."""
+def deliver(node: AgentNode, k: int, msg: Any, targets: list[AgentNode]) -> None:
+    """Hand ``node``'s round-``k`` message(s) to its out-neighbours (an addressed
+    publication as :func:`agents.rounds.addressed` unpacks it)."""
     if isinstance(msg, dict):
-        for tgt in targets:
-            payload = msg.get(tgt.id)
-            if payload is None:
-                continue
-            if isinstance(payload, Forged):
-                tgt.receive(node.id, payload.stamp, payload.value)
-            else:
-                tgt.receive(node.id, k, payload)
+        by_id = {t.id: t for t in targets}
+        for j, stamp, value in addressed(msg, k, by_id):
+            by_id[j].receive(node.id, stamp, value)
     else:
         for tgt in targets:
             tgt.receive(node.id, k, msg)
@@ -170,22 +123,20 @@ def simulate(
     K = exp.n_rounds
     N, n = exp.N, exp.n
     targets = [[nodes[j] for j in exp.out_neighbours(i)] for i in range(N)]
-    # regular agents first, Byzantine ones last (they may read the round's messages)
-    order = [i for i in range(N) if i not in exp.byzantine] + sorted(exp.byzantine)
-    view = SimulatorView(nodes)
+    order = round_order(N, exp.byzantine)  # an omniscient adversary reads the messages of those before it
+    views = []
     for i in exp.byzantine:
-        nodes[i].view = view
-    static = exp.static
-    rows = exp.agent_rows
+        if reads_view(nodes[i].strategy):
+            topo = view_topology(exp, nodes[i].id, {nd.id: nd.estimator for nd in nodes})
+            nodes[i].view = view = NodesView(topo, nodes)
+            views.append(view)
+    reads = Reads(exp)
+    measurement = reads.measurement
     diag = [(i, nodes[i].estimator) for i in range(N) if has_diagnostics(nodes[i].estimator)]
-    frames: dict[int, np.ndarray] = {}
+    feed = None
     if dashboard is not None:
-        def on_chunk(chunk_rows, xs, ests):
-            counters = np.array([[sum(getattr(c, f) for c in node.links.values())
-                                  for f in ("delivered", "dropped", "late", "rejected")] for node in nodes], dtype=float)
-            dashboard.log_chunk(chunk_rows, mon, x=xs, est=ests, delivered=frames, counters=counters)
-            frames.clear()
-        mon.on_chunk = on_chunk
+        feed = DashboardFeed(dashboard, N, lambda: receiver_counters(nodes))
+        mon.on_chunk = lambda rows, xs, ests: feed.log(rows, mon, xs, ests)
     groups = batch_groups(exp, nodes) if batched else []
     in_batch = {i for g in groups for i in g.agents}
     singles = [i for i in order if i not in in_batch]
@@ -197,19 +148,14 @@ def simulate(
     for i in range(N):
         heard[i, exp.in_neighbours(i)] = True
 
-    def measurement(i: int, k: int, y: np.ndarray) -> np.ndarray | None:
-        if static:
-            return y[rows[i]]
-        r = exp.rows_at(i, k)
-        return None if r is None else y[r]
-
     t0 = last_flush = time.perf_counter()
     for k in range(K + 1):
         y = plant.measure(k)
         if closed is not None:
             est_k = closed.step_closed(k, y)
         else:
-            view.k = k
+            for view in views:
+                view.k = k
             est_k = est_out
             for g in groups:  # every batch in one call, then the agents stepped alone
                 outs = g.step(k, [measurement(i, k, y) for i in g.agents], [nodes[i].open_round(k) for i in g.agents])
@@ -228,15 +174,12 @@ def simulate(
                 msg = node.publish(k, out) if node.strategy is not None else out
                 deliver(node, k, msg, targets[i])
         x = plant.x
-        if dashboard is not None and dashboard.is_map_frame(k):
+        if feed is not None and feed.wants(k):
             if closed is not None:
-                D = heard.copy() if k > 0 else np.zeros((N, N), dtype=bool)
+                if k > 0:
+                    feed.frame(k)[:] = heard
             else:
-                D = np.zeros((N, N), dtype=bool)
-                for i, node in enumerate(nodes):
-                    for j in node.arrived:
-                        D[i, j] = True
-            frames[k] = D
+                feed.set_arrivals(k, (node.arrived for node in nodes))
         if record:
             mon.record(k, x, est_k)
             for i, est in diag:
@@ -260,6 +203,4 @@ def simulate(
                 c.delivered += K + 1
     mon.flush()
     elapsed = time.perf_counter() - t0
-    links = {f"{j}->{node.id}": c.as_dict() for node in nodes for j, c in node.links.items()}
-    regular = np.array([i not in exp.byzantine for i in range(N)])
-    return SimResult(mon, regular, links, elapsed, K + 1, traj, truth)
+    return SimResult(mon, regular_mask(exp), links_of(nodes), elapsed, K + 1, traj, truth)

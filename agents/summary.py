@@ -27,6 +27,7 @@ from scenarios.build import Experiment
 from scenarios.schema import Expectation
 
 from .monitor import METRICS, Monitor
+from .rounds import regular_mask
 
 
 def _nanmax(a: np.ndarray) -> float:
@@ -203,6 +204,19 @@ def summarise(exp: Experiment, mon: Monitor, regular: np.ndarray, links: dict[st
     }
     out.update(diagnostics_summary(exp, mon))
     return out
+
+
+def summarise_run(exp: Experiment, mon: Monitor, links: dict[str, dict[str, int]],
+                  rejected: dict[str, dict[str, int]] | None = None, *, complete: bool = True,
+                  reason: str | None = None) -> tuple[dict[str, Any], list[ExpectationResult]]:
+    """A run's ``summary.json`` (:func:`summarise`, with its ``expectations``) and the
+    expectations :func:`evaluate` judged, as both drivers write them; ``links``:
+    :func:`agents.rounds.links_table` of the receivers' counters."""
+    regular = regular_mask(exp)
+    results = evaluate(exp, mon, regular)
+    summary = summarise(exp, mon, regular, links, rejected, complete=complete, reason=reason)
+    summary["expectations"] = [r.as_dict() for r in results]
+    return summary, results
 
 
 def diagnostics_summary(exp: Experiment, mon: Monitor) -> dict[str, Any]:

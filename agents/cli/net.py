@@ -339,7 +339,7 @@ def agent(agent_spec: str, **kw: Any) -> None:
     spec = _role_spec("agent", label, _validate=cached is None, **extra, **kw)
     if cached is None:
         from ..net.slices import agent_slices, dumps_slices
-        from ..simulate import make_channel, make_nodes
+        from ..middleware import make_channel, make_nodes
 
         exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
         missing = [a for a in ids if a not in exp.agent_ids]

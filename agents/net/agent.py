@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agents.rounds import addressed, link_rows
 from estimation.errors import MessageError, RSEError, TransportError
 from transport.codec import PLANT_ID, Schema, decode
 from transport.keys import Keys
@@ -60,7 +61,6 @@ class AgentProcess(Role):
         self.skipped = 0
         self.waited_out = 0
         self._timer: asyncio.TimerHandle | None = None
-        self._own_estimate = getattr(self.node, "estimate", None)
         from agents.monitor import has_diagnostics
 
         self._diagnostics = has_diagnostics(self.node.estimator)
@@ -251,7 +251,7 @@ class AgentProcess(Role):
         node, bus = self.node, self.bus
         if self.view is not None:
             self.view.forget(k)
-        own = self._own_estimate(out) if self._own_estimate is not None else out
+        own = node.estimate(out)
         msg = node.publish(k, out) if node.strategy is not None else out
         aid = self.id
         drop = self.cfg.mode == "realtime"  # an estimate a neighbour cannot take now is dropped for it alone
@@ -260,16 +260,11 @@ class AgentProcess(Role):
                 to, stamps = [], []
             elif isinstance(msg, dict):
                 to, stamps = [], []
-                for tgt in self.out_ids:
-                    payload = msg.get(tgt)
-                    if payload is None:
-                        continue
-                    stamp = getattr(payload, "stamp", k)
-                    value = getattr(payload, "value", payload)
-                    bus.publish(self.keys.est(aid, tgt), _msg("est", aid, int(stamp), {"x": value}, receiver=tgt),
+                for tgt, stamp, value in addressed(msg, k, self.out_ids):
+                    bus.publish(self.keys.est(aid, tgt), _msg("est", aid, stamp, {"x": value}, receiver=tgt),
                                 droppable=drop)
                     to.append(tgt)
-                    stamps.append(int(stamp))
+                    stamps.append(stamp)
             elif self._merge:  # the done report below carries the estimate (one message, not two)
                 finite = bool(np.all(np.isfinite(msg)))
                 to, stamps = (self.out_ids, [k] * len(self.out_ids)) if finite else ([], [])
@@ -404,9 +399,7 @@ class AgentProcess(Role):
                     await asyncio.wait_for(self.changed.wait(), timeout)
                 except TimeoutError:
                     pass
-            links = np.array([[j, c.sent, c.delivered, c.dropped, c.late, c.rejected] for j, c in self.node.links.items()],
-                             dtype=float).reshape(-1, 6)
-            self.send_stats(self.id, links, rounds=self.rounds_run, skipped=self.skipped, waited_out=self.waited_out)
+            self.send_stats(self.id, link_rows(self.node.links), rounds=self.rounds_run, skipped=self.skipped, waited_out=self.waited_out)
             await asyncio.sleep(0.05)
             return {"rounds": self.rounds_run}
         finally:

@@ -87,25 +87,23 @@ class MonitorProcess(Role):
         return self.stop_round is not None or self.next_k == 0 or ("plant", 0) not in self.alive
 
     def _setup_dashboard(self, dash: Any) -> None:
-        """Stream to the Rerun dashboard as ``rse simulate`` does: per chunk of recorded
-        rounds the metrics, state plots, map frames and counters. The links delivered in a
-        round and the link counters are reconstructed from the done reports (who sent what
-        to whom, stamped when) with the channel model, as each receiver's node decides."""
-        from agents.simulate import make_channel
+        """Stream to the Rerun dashboard as ``rse simulate`` does
+        (:class:`agents.rounds.DashboardFeed`). The links delivered in a round and the link
+        counters are reconstructed from the done reports (who sent what to whom, stamped
+        when) with the channel model, as each receiver's node decides
+        (:func:`agents.rounds.count_fate`)."""
+        from agents.middleware import make_channel
+        from agents.rounds import DashboardFeed, counters_array
+        from transport.channel import LinkCounters
 
         exp, mon = self.exp, self.mon
         self._channel = make_channel(exp)
-        self._frames: dict[int, np.ndarray] = {}
-        self._counters = np.zeros((exp.N, 4))  # delivered, dropped, late, rejected (per receiver)
-        N = exp.N
+        self._counters = [LinkCounters() for _ in range(exp.N)]  # per receiver, over its in-links
+        feed = self._feed = DashboardFeed(dash, exp.N, lambda: counters_array(self._counters))
 
         def on_chunk(rows: Any, xs: np.ndarray, ests: np.ndarray) -> None:
-            frames = {int(k): self._frames.pop(int(k), None) for k in rows if dash.is_map_frame(int(k))}
-            for k, D in frames.items():
-                if D is None:
-                    frames[k] = np.zeros((N, N), dtype=bool)
             try:
-                dash.log_chunk(rows, mon, x=xs, est=ests, delivered=frames, counters=self._counters.copy())
+                feed.log(rows, mon, xs, ests)
             except Exception:  # the dashboard must not stop the monitor
                 log.exception("monitor: could not log to the dashboard")
 
@@ -113,7 +111,8 @@ class MonitorProcess(Role):
 
     def _setup_stream(self, out_dir: Path) -> None:
         """Metrics streamed to ``out_dir`` as the rounds are recorded (:mod:`agents.recorder`)."""
-        from agents.recorder import MetricsStream, load_into, read_partial, regular_mask
+        from agents.recorder import MetricsStream, load_into, read_partial
+        from agents.rounds import regular_mask
 
         out_dir.mkdir(parents=True, exist_ok=True)
         if self.resume:
@@ -130,25 +129,18 @@ class MonitorProcess(Role):
 
     def _links_of(self, sender: int, stamp: int, to: np.ndarray, stamps: np.ndarray) -> None:
         """Dashboard bookkeeping of one done report (see :meth:`_setup_dashboard`)."""
-        fate, index, dash = self._channel.fate, self.index, self.dashboard
+        from agents.rounds import count_fate
+
+        fate, index, feed = self._channel.fate, self.index, self._feed
         s = index[sender]
         for t, st in zip(to, stamps):
             r = index.get(int(t))
             if r is None:
                 continue
             when = fate(sender, int(t), int(st))
-            c = self._counters[r]
-            if when is None:
-                c[1] += 1
-                continue
-            c[0] += 1
-            if when > int(st) + 1:
-                c[2] += 1
-            if when >= self.next_k and dash.is_map_frame(when) and when <= self.exp.n_rounds:
-                D = self._frames.get(when)
-                if D is None:
-                    D = self._frames[when] = np.zeros((self.exp.N, self.exp.N), dtype=bool)
-                D[r, s] = True
+            count_fate(self._counters[r], when, int(st))
+            if when is not None and when >= self.next_k and when <= self.exp.n_rounds and feed.wants(when):
+                feed.frame(when)[r, s] = True
 
     def on_alive(self, role: str, i: int, alive: bool) -> None:
         event = {"t_wall": round(time.monotonic() - self.t0, 3), "round": self.next_k, "role": role, "id": i,
@@ -311,7 +303,8 @@ class MonitorProcess(Role):
             if self.mon.last_round >= 0:
                 self._finish(complete=False, reason=reason)
             else:  # nothing recorded: the header of a summary only
-                from agents.recorder import drop_partial, incomplete_summary, regular_mask
+                from agents.recorder import drop_partial, incomplete_summary
+                from agents.rounds import regular_mask
                 from agents.rundir import write_json
 
                 if self.stream is not None:
@@ -345,18 +338,18 @@ class MonitorProcess(Role):
         return self._finish()
 
     def _finish(self, *, complete: bool = True, reason: str | None = None) -> MonitorResult:
-        from agents.summary import evaluate, summarise
+        from agents.rounds import links_table, regular_mask
+        from agents.summary import summarise_run
 
         exp, mon = self.exp, self.mon
         if self.dashboard is not None:  # the final rejected counts per receiver, for the last chunk
             for who, m in self.stats.items():
                 if who.isdigit() and int(who) in self.index:
-                    self._counters[self.index[int(who)], 3] = float(np.sum(m.arrays["links"][:, 5]))
+                    self._counters[self.index[int(who)]].rejected = int(np.sum(m.arrays["links"][:, 5]))
         mon.flush()
         if self.dashboard is not None:
             self.dashboard.flush()
-        regular = np.array([i not in exp.byzantine for i in range(exp.N)])
-        links: dict[str, dict[str, int]] = {}
+        regular = regular_mask(exp)
         rejected: dict[str, dict[str, int]] = {}
         processes: dict[str, Any] = {"monitor": {"maxrss_mb": maxrss_mb(), "uss_mb": uss_mb()}}
         Rejects.merge(rejected, self.rejects.as_array())
@@ -364,24 +357,16 @@ class MonitorProcess(Role):
         for who, m in sorted(self.stats.items()):
             Rejects.merge(rejected, m.arrays["rejected"])
             processes[who if who == "plant" else f"agent {who}"] = {k: v for k, v in m.meta.items() if k != "cmd"}
-            for row in m.arrays["links"]:
-                j, sent, delivered, dropped, late, rej = (int(v) for v in row)
-                links[f"{j}->{who}"] = {"sent": sent, "delivered": delivered, "dropped": dropped, "late": late,
-                                        "rejected": rej}
             if who == "plant":
                 perf = {"elapsed_s": m.meta.get("elapsed"), "rounds": m.meta.get("rounds"),
                         "deadline_misses": m.meta.get("missed"), "round0_at": m.meta.get("round0_at")}
         if perf.get("elapsed_s"):
             perf["rounds_per_s"] = perf["rounds"] / perf["elapsed_s"]
             perf["agent_rounds_per_s"] = perf["rounds_per_s"] * exp.N
-        # order links like the simulator: by receiver, then sender
-        order = {f"{j}->{aid}": (exp.agent_ids.index(aid), jj) for aid in exp.agent_ids
-                 for jj, j in enumerate([exp.agent_ids[x] for x in exp.in_neighbours(exp.agent_ids.index(aid))])}
-        links = dict(sorted(links.items(), key=lambda kv: order.get(kv[0], (1 << 30, 0))))
-        results = evaluate(exp, mon, regular)
-        summary = summarise(exp, mon, regular, links, rejected, complete=complete, reason=reason)
+        # each agent's link rows (agents.rounds.link_rows), by receiver index as the simulator's
+        reports = [(aid, self.stats[str(aid)].arrays["links"]) for aid in exp.agent_ids if str(aid) in self.stats]
+        summary, results = summarise_run(exp, mon, links_table(reports), rejected, complete=complete, reason=reason)
         summary["unrecorded_rounds"] = _gaps(mon.truth_norm[: mon.last_round + 1, 0])
-        summary["expectations"] = [r.as_dict() for r in results]
         summary["performance"] = perf
         summary["driver"] = "run"
         summary["mode"] = self.cfg.mode

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agents.rounds import Reads
 from estimation.errors import TransportError
 from transport.codec import MONITOR_ID, PLANT_ID
 from transport.keys import Keys
@@ -114,7 +115,7 @@ class PlantProcess(Role):
         exp, keys, bus, cfg, plant = self.exp, self.keys, self.bus, self.cfg, self.plant
         K = exp.n_rounds
         ids = exp.agent_ids
-        static = getattr(exp, "static", True)
+        reads = Reads(exp)
         lockstep = cfg.mode == "lockstep"
         period = 1.0 / cfg.rate if cfg.rate else None
         loc_keys = {aid: keys.plant_loc(aid) for aid in ids}
@@ -137,7 +138,7 @@ class PlantProcess(Role):
             # realtime: a measurement an agent cannot take now is dropped for it alone
             # (an unreachable agent must not hold up the others' measurements)
             for i, aid in enumerate(ids):
-                rows = exp.agent_rows[i] if static else exp.rows_at(i, k)
+                rows = reads.rows(i, k)
                 meas = empty if rows is None else y[rows]
                 member = aid in self.members
                 bus.publish(loc_keys[aid], _msg("meas", PLANT_ID, k, {"y": meas, "wait": waits.get(aid, nowait) if member else nowait},

@@ -26,9 +26,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agents.omniscient import ViewTopology, reads_view, view_topology
 from estimation.errors import ScenarioError
-
-from .view import ViewTopology, reads_view, view_topology
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -85,7 +84,7 @@ def agent_slices(exp: Experiment, nodes: Sequence[Any] | None = None) -> list[Ag
     """Every agent's slice of ``exp`` (``nodes``: fresh nodes built as the simulator builds
     them, :func:`agents.simulate.make_nodes`; built here when not given)."""
     if nodes is None:
-        from agents.simulate import make_channel, make_nodes
+        from agents.middleware import make_channel, make_nodes
 
         nodes = make_nodes(exp, make_channel(exp))
     ids = tuple(exp.agent_ids)
@@ -111,7 +110,7 @@ def agent_slice(exp: Experiment, agent_id: int, node: Any = None) -> AgentSlice:
         raise ScenarioError(f"no agent {agent_id} in this scenario; agents are {', '.join(map(str, exp.agent_ids))}")
     if node is None:
         return agent_slices(exp)[exp.agent_ids.index(agent_id)]
-    from agents.simulate import make_channel, make_nodes
+    from agents.middleware import make_channel, make_nodes
 
     nodes = make_nodes(exp, make_channel(exp))
     nodes[exp.agent_ids.index(agent_id)] = node

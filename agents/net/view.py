@@ -1,107 +1,47 @@
 """The omniscient adversary's view over the network (:class:`NetworkView`): what a
-Byzantine agent's out-neighbours will use next round, read off the messages of the run as
-:class:`agents.simulate.SimulatorView` reads it off the nodes."""
+Byzantine agent's out-neighbours will use next round, read off the messages of the run.
+Which senders and components count, in which order, is :mod:`agents.omniscient`'s (the
+same :meth:`~agents.omniscient.OmniscientView.others_for` as the simulator's view)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from estimation.base import MaskedInputs
+from agents.omniscient import OmniscientView, ViewTopology, reads_view, view_topology
+from agents.rounds import round_rank
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
 
-
-def reads_view(strategy: Any) -> bool:
-    """Whether a Byzantine strategy reads ``node.view`` (the omniscient adversary)."""
-    return getattr(strategy, "kind", None) == "cancellation"
+__all__ = ["NetworkView", "ViewTopology", "reads_view", "simulator_order", "view_topology"]
 
 
 def simulator_order(exp: Experiment) -> dict[int, int]:
-    """Agent id -> rank in the simulator's round order (regular agents first, by index,
-    then the Byzantine ones, by index)."""
-    order = [i for i in range(exp.N) if i not in exp.byzantine] + sorted(exp.byzantine)
-    return {exp.agent_ids[i]: r for r, i in enumerate(order)}
+    """Agent id -> rank in the round order (:func:`agents.rounds.round_order`)."""
+    return round_rank(exp.agent_ids, exp.byzantine)
 
 
-@dataclass(frozen=True)
-class ViewTopology:
-    """What :class:`NetworkView` needs of the team (picklable, part of an agent's slice).
-
-    me : the Byzantine agent's id; agent_ids : every agent id, in index order
-    out : my out-neighbours; before : receiver -> its in-neighbours (not me) that act
-        before me in the simulator's order, in that order
-    needed : the agents whose round-``k`` messages the view waits for
-    masks : receiver -> sender id -> the receiver estimator's ``uses(sender_index)`` mask
-        (receivers without ``uses`` are left out: every component counts)
-    """
-
-    me: int
-    agent_ids: tuple[int, ...]
-    out: tuple[int, ...]
-    before: dict[int, tuple[int, ...]]
-    needed: tuple[int, ...]
-    masks: dict[int, dict[int, Any]] = field(default_factory=dict)
-
-
-def view_topology(exp: Experiment, me: int, estimators: dict[int, Any] | None = None) -> ViewTopology:
-    """The :class:`ViewTopology` of Byzantine agent ``me`` in ``exp``; ``estimators``:
-    agent id -> estimator of each out-neighbour (for their ``uses`` masks; built with
-    ``exp.make_estimator`` when not given; ``{}``: no masks)."""
-    rank = simulator_order(exp)
-    ids = exp.agent_ids
-    index_of = {aid: i for i, aid in enumerate(ids)}
-    out = tuple(ids[j] for j in exp.out_neighbours(index_of[me]))
-    before: dict[int, tuple[int, ...]] = {}
-    for j in out:
-        ins = [ids[s] for s in exp.in_neighbours(index_of[j])]
-        before[j] = tuple(sorted((s for s in ins if s != me and rank[s] < rank[me]), key=rank.__getitem__))
-    needed = tuple(sorted({s for v in before.values() for s in v}))
-    masks: dict[int, dict[int, Any]] = {}
-    for j in out:
-        est = estimators.get(j) if estimators is not None else exp.make_estimator(index_of[j])
-        uses = est.uses if isinstance(est, MaskedInputs) else None
-        if uses is not None:
-            masks[j] = {s: uses(index_of[s]) for s in before[j]}
-    return ViewTopology(me, tuple(ids), out, before, needed, masks)
-
-
-class NetworkView:
-    """The omniscient adversary's view over the network: what each out-neighbour ``j``
-    of Byzantine agent ``me`` will use next round, exactly as
-    :class:`agents.simulate.SimulatorView` reads it off ``j``'s node.
+class NetworkView(OmniscientView):
+    """The omniscient adversary's view over the network.
 
     The agent process feeds it every estimate message of the run (:meth:`add`, broadcast
     and addressed, decoded strictly) and the done reports of the agents it depends on
-    (:meth:`add_done`). For round ``k``, :meth:`others_for` returns the values stamped
-    ``k`` that ``j``'s other in-neighbours sent to ``j`` and that the channel model makes
-    visible to ``j`` at ``k + 1`` -- only from agents that act before ``me`` in the
-    simulator's order (regular agents, then Byzantine ones by index) -- masked by ``j``'s
-    estimator's ``uses(sender_index)`` when it has one (precomputed: :class:`ViewTopology`), in the simulator's order (so the
-    sums are bit-identical). In lockstep the agent publishes round ``k`` only once
-    :meth:`ready` (every such agent's round-``k`` messages to ``me``'s out-neighbours have
-    arrived, or it is not alive) or the deadline passed.
+    (:meth:`add_done`). A value counts for receiver ``j`` in round ``k`` when it is
+    stamped ``k`` and the channel model makes it visible to ``j`` at ``k + 1``
+    (:meth:`visible`); the rest is :class:`~agents.omniscient.OmniscientView`'s. In
+    lockstep the agent publishes round ``k`` only once :meth:`ready` (every agent the view
+    needs has its round-``k`` messages to ``me``'s out-neighbours here, or is not alive)
+    or the deadline passed.
     """
 
     MAX_STORED = 1 << 14
 
     def __init__(self, topo: ViewTopology, channel: Any) -> None:
-        self.k = 0
-        self.me = topo.me
+        super().__init__(topo)
         self.channel = channel
-        self.index_of = {aid: i for i, aid in enumerate(topo.agent_ids)}
-        self.out = list(topo.out)
-        self.out_set = set(self.out)
-        #: receiver -> its in-neighbours that act before me, in the simulator's order
-        self.before = {j: list(v) for j, v in topo.before.items()}
-        #: the agents whose round-k messages the view needs
-        self.needed = list(topo.needed)
-        #: receiver -> sender id -> the payload mask of the receiver's ``uses`` (None: all)
-        self.masks = topo.masks
         self.bcast: dict[tuple[int, int], np.ndarray] = {}
         self.addr: dict[tuple[int, int, int], np.ndarray] = {}
         self.done: dict[int, dict[int, list[tuple[int, int]]]] = {}
@@ -145,22 +85,13 @@ class NetworkView:
                     return False
         return True
 
-    def others_for(self, receiver: int, sender: int) -> list[np.ndarray]:
-        k = self.k
-        masks = self.masks.get(receiver)
-        fate = self.channel.fate
-        out = []
-        for s in self.before.get(receiver, ()):
-            if s == sender:
-                continue
-            v = self.addr.get((s, receiver, k))
-            if v is None:
-                v = self.bcast.get((s, k))
-            if v is None or fate(s, receiver, k) != k + 1:
-                continue
-            v = np.asarray(v, dtype=float)
-            out.append(v * masks[s] if masks is not None else v)
-        return out
+    def visible(self, sender: int, receiver: int, k: int) -> Any:
+        v = self.addr.get((sender, receiver, k))
+        if v is None:
+            v = self.bcast.get((sender, k))
+        if v is None or self.channel.fate(sender, receiver, k) != k + 1:
+            return None
+        return v
 
     def forget(self, k: int) -> None:
         """Drop what rounds before ``k`` left behind."""
