@@ -338,8 +338,8 @@ def agent(agent_spec: str, **kw: Any) -> None:
     extra: dict[str, Any] = {"agent_id": ids[0]} if len(ids) == 1 else {"agent_ids": tuple(ids)}
     spec = _role_spec("agent", label, _validate=cached is None, **extra, **kw)
     if cached is None:
-        from ..net.slices import agent_slices, dumps_slices
         from ..middleware import make_channel, make_nodes
+        from ..net.slices import agent_slices, dumps_slices
 
         exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
         missing = [a for a in ids if a not in exp.agent_ids]

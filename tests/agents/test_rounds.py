@@ -7,15 +7,13 @@ import subprocess
 import sys
 
 import numpy as np
-import pytest
 
 from agents.api import load_experiment
 from agents.middleware import make_channel, make_nodes
 from agents.net.view import NetworkView
 from agents.omniscient import NodesView, OmniscientView, reads_view, view_topology
 from agents.plant import PlantRole
-from agents.rounds import (DashboardFeed, Reads, addressed, count_fate, link_rows, links_of, links_table,
-                           receiver_counters, round_order, round_rank)
+from agents.rounds import DashboardFeed, Reads, addressed, count_fate, link_rows, links_of, links_table, receiver_counters, round_order, round_rank
 from agents.simulate import deliver, simulate
 from estimation.base import MaskedInputs
 from tests.conftest import SCENARIOS
@@ -157,7 +155,7 @@ def test_the_view_needs_the_simulators_order_not_the_arrival_order():
     (b,) = exp.byzantine
     topo = view_topology(exp, exp.agent_ids[b], {})
     rank = round_rank(exp.agent_ids, exp.byzantine)
-    for j, before in topo.before.items():
+    for before in topo.before.values():
         assert list(before) == sorted(before, key=rank.__getitem__)
         assert exp.agent_ids[b] not in before
     assert topo.masks == {}  # no estimators given: every component counts
@@ -188,12 +186,34 @@ def test_dashboard_feed_hands_frames_of_map_rounds_and_counters():
     assert list(feed.frames) == [6]  # a later chunk's frame is kept
 
 
-@pytest.mark.parametrize("modules", [("agents.rounds", "agents.omniscient", "agents.node", "agents.net.view")])
-def test_the_round_core_is_lean(modules):
+def test_the_round_core_is_lean():
     """An agent process imports the core: not the scenario schema, pyarrow, Rerun, cvxpy,
     networkx or click."""
+    modules = ("agents.rounds", "agents.omniscient", "agents.node", "agents.net.view")
     code = (f"import sys\nimport {', '.join(modules)}\n"
             "print(sorted(m for m in ('scenarios.schema', 'scenarios.build', 'pydantic', 'pyarrow', 'rerun', "
             "'cvxpy', 'networkx', 'click') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_an_adversarys_slice_unpickles_without_the_heavy_stack(tmp_path):
+    """The omniscient adversary's slice (its node and its view's topology, agents.omniscient)
+    is read by an agent process without the scenario schema, pyarrow, Rerun, cvxpy,
+    networkx or click."""
+    from agents.net.slices import agent_slices, dumps_slice
+
+    exp, _ = load_experiment(SCENARIOS / "mitra_cells.toml", ("run.rounds=5", "expect=[]"), None)
+    (b,) = exp.byzantine
+    part = agent_slices(exp)[b]
+    assert part.view is not None and part.view.masks
+    path = tmp_path / "agent.pkl"
+    path.write_bytes(dumps_slice(part))
+    code = ("import sys\nfrom agents.net.slices import read_slice\n"
+            f"p = read_slice(__import__('pathlib').Path({str(path)!r}))\n"
+            "assert type(p.view).__module__ == 'agents.omniscient', type(p.view)\n"
+            "print(sorted(m for m in ('scenarios.schema', 'scenarios.build', 'pydantic', 'pyarrow', 'rerun', "
+            "'cvxpy', 'networkx', 'click') if m in sys.modules))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "[]"
