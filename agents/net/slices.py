@@ -82,7 +82,7 @@ def payload_shape(estimator: Any, n: int) -> tuple[int, ...]:
 
 def agent_slices(exp: Experiment, nodes: Sequence[Any] | None = None) -> list[AgentSlice]:
     """Every agent's slice of ``exp`` (``nodes``: fresh nodes built as the simulator builds
-    them, :func:`agents.simulate.make_nodes`; built here when not given)."""
+    them, :func:`agents.middleware.make_nodes`; built here when not given)."""
     if nodes is None:
         from agents.middleware import make_channel, make_nodes
 
