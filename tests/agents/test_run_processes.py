@@ -170,19 +170,32 @@ def test_run_through_a_router_equals_the_simulator(procs, tmp_path):
     _compare(out, LKS, ov, tmp_path / "sim")
 
 
+# per agent, the worst infinity-norm error over [40, 41] after agent 3 was killed at t = 15
+# and restarted at t = 20. Measured (two runs, loaded machine): 0.2165, 5.7e-9 to 1.1e-8,
+# 1.1e-7 to 5.6e-7, 0.0722, 0.1444 (rse simulate without the kill: 0.2165, 9.3e-14, 1.2e-14,
+# 0.0722, 0.1443). Agents 2 and 3 within about a hundred times that (the rejoin comes
+# seconds later on a loaded machine: at t = 30 agent 2 was at 1.8e-4 to 2.7e-3), agent 1
+# within the scenario's 0.25; agents 4 and 5, where the attack sets the error, within 40%
+# of it. Agent 3 rejoining with a frozen estimate, or anyone 1,000 times less accurate,
+# fails these.
+KILL_RESTART_BOUND = {1: 0.25, 2: 1e-6, 3: 1e-5, 4: 0.1, 5: 0.2}
+
+
 def test_kill_an_agent_and_restart_it(procs, tmp_path):
-    """Realtime at 100 Hz (dt = 0.01) up to t = 31 s: kill agent 3 at t = 15 s, restart it
-    at t = 20 s with `rse agent --id 3 --team`; the others stay within the bounds, agent 3
-    re-converges by t = 30 s."""
+    """Lockstep paced at 100 Hz (dt = 0.01) up to t = 41 s: kill agent 3 at t = 15 s,
+    restart it at t = 20 s with `rse agent --id 3 --team`; every agent within its bound
+    over [40, 41] (KILL_RESTART_BOUND), agent 3 re-converged. Lockstep, so that every
+    agent's estimate of every round is recorded on a loaded machine (realtime there left
+    agents late for most rounds and the run failed its t = 10 bound with nothing wrong)."""
     out = tmp_path / "run"
-    p = procs.start(_cmd("run", str(LKS), "--set", "run.dt=0.01", "--set", "run.duration=31",
-                         "--set", "output.window=[30.0, 31.0]", "--mode", "realtime", "--rate", "100",
+    p = procs.start(_cmd("run", str(LKS), "--set", "run.dt=0.01", "--set", "run.duration=41",
+                         "--set", "output.window=[40.0, 41.0]", "--mode", "lockstep", "--rate", "100",
                          "--out", str(out), "--no-progress", "--no-rerun"))
-    team = _wait_file(out / "team.json", 20)
+    team = _wait_file(out / "team.json", 60)
     pid3 = team["pids"]["agent 3"]
 
     def wait_round(k: int) -> None:
-        end = time.monotonic() + 30
+        end = time.monotonic() + 120
         while time.monotonic() < end:
             try:
                 if json.loads((out / "status.json").read_text())["round"] >= k:
@@ -197,10 +210,10 @@ def test_kill_an_agent_and_restart_it(procs, tmp_path):
     os.kill(pid3, signal.SIGKILL)
     wait_round(2000)
     r = procs.start(_cmd("agent", "--id", "3", "--team", str(out / "team.json")))
-    so, se = p.communicate(timeout=25)
+    so, se = p.communicate(timeout=120)
     assert p.returncode == 0, se  # the scenario's [[expect]] bounds hold (exit 3 otherwise)
     assert "agent 3 was killed by SIGKILL" in se
-    r.communicate(timeout=10)
+    r.communicate(timeout=30)
     assert r.returncode == 0
     m = pq.read_table(out / "metrics.parquet").to_pydict()
     k, agent, e = np.array(m["k"]), np.array(m["agent"]), np.array(m["error_inf"])
@@ -208,10 +221,11 @@ def test_kill_an_agent_and_restart_it(procs, tmp_path):
     t = k * 0.01
     others = x & (agent != 3)
     assert np.nanmax(e[others & (np.abs(t - 10.0) < 1e-9)]) <= 0.01
-    assert np.nanmax(e[others & (t >= 30.0)]) <= 0.25
+    worst = {a: float(np.nanmax(e[x & (agent == a) & (t >= 40.0)])) for a in range(1, 6)}
+    print(f"\nworst error over [40, 41] per agent: {worst}")
+    assert all(worst[a] <= KILL_RESTART_BOUND[a] for a in worst), (worst, KILL_RESTART_BOUND)
     a3 = x & (agent == 3)
     assert np.isnan(e[a3 & (t > 17.5) & (t < 20.0)]).all()  # dead: NaN rows (killed at t ~ 15-16)
-    assert np.nanmax(e[a3 & (t >= 30.0)]) <= 0.25  # re-converged by t = 30
     summary = json.loads((out / "summary.json").read_text())
     events = [ev["event"] for ev in summary["membership"] if ev["role"] == "agent" and ev["id"] == 3]
     assert events[:3] == ["join", "leave", "join"]
