@@ -84,10 +84,9 @@ INJECT = textwrap.dedent("""
     import json, sys, time, msgpack, numpy as np
     from transport.keys import Keys
     from transport.zenoh_session import SessionOptions, open_session, close_session
-    team = json.load(open(sys.argv[1]))
-    keys = Keys(team["run_id"])
-    # the team's peers do not gossip: connect to each, retrying soon those not up yet
-    s = open_session(SessionOptions(mode="peer", connect=tuple(team["endpoints"].values()), retry_ms=50))
+    run_id, router, done, seconds = sys.argv[1:5]
+    keys = Keys(run_id)
+    s = open_session(SessionOptions.client([router]))
     good = msgpack.packb({"v": 1, "kind": "est", "from": 2, "k": 3, "arr": {"x": [[6], bytes(48)]}})
     bad = [b"\\xc1 random bytes", bytes(range(256)),
            msgpack.packb({"v": 1, "kind": "est", "from": "two", "k": 3.5, "arr": []}),
@@ -98,15 +97,16 @@ INJECT = textwrap.dedent("""
     targets = [keys.est(2), keys.est(2, 3), keys.est(4), keys.plant_loc(1), keys.plant_truth(),
                keys.ctl("done", 3), keys.ctl("ready", 5), keys.ctl("stats", 1), keys.ctl("ack", -2), keys.ctl("stop", -1)]
     try:
-        end = time.monotonic() + float(sys.argv[2])
+        end = time.monotonic() + float(seconds)
         n = 0
-        done = sys.argv[1].replace("team.json", "summary.json")
         import os
         while time.monotonic() < end and not os.path.exists(done):
             for key in targets:
                 for b in bad:
                     s.put(key, b)
                     n += 1
+            if n == len(targets) * len(bad):
+                print("ready", flush=True)  # the team starts now: it runs while this one injects
             time.sleep(0.05)
         print(n)
     finally:
@@ -116,22 +116,25 @@ INJECT = textwrap.dedent("""
 
 def test_two_teams_at_once_equal_the_simulator_with_bad_bytes_injected(procs, tmp_path):
     """Two rse run at the same time, both in lockstep: lee_kim_shim.toml with drops and
-    delays (paced at 150 rounds/s, so that the run outlasts the injector's start) and
-    mitra_cells.toml as it is (300 rounds, drops with p = 0.32, the omniscient
-    cancellation adversary); an outside process injects bad messages into the first. Both
-    write the same run directory as rse simulate, every estimate equal to the simulator's;
-    each kind of bad message is dropped and counted per sender; nothing stops."""
+    delays, its processes clients of a router, and mitra_cells.toml as it is (300 rounds,
+    drops with p = 0.32, the omniscient cancellation adversary), peers on loopback. An
+    outside process, a client of the same router, injects bad messages into the first from
+    before it starts until its summary is written (the team starts once the injector said
+    it is injecting: no race with a fast team). Both write the same run directory as rse
+    simulate, every estimate equal to the simulator's; each kind of bad message is dropped
+    and counted per sender; nothing stops."""
     lossy = SHORT + ("--set", "network.channel.drop_p=0.2", "--set", "network.channel.delay_max=2",
                      "--set", "expect.0.max=1.0")
     a, b = tmp_path / "a", tmp_path / "b"
-    t0 = time.monotonic()
-    pa = procs.start(_cmd("run", str(LKS), *lossy, "--rate", "150", "--out", str(a), "--save-estimates", "--no-progress",
-                                  "--deadline", "30"))  # lockstep semantics even on a loaded machine
+    _, ep = procs.router("--listen", "tcp/127.0.0.1:0")
+    run_id = f"inject-{os.getpid()}"
+    inj = procs.start([sys.executable, "-c", INJECT, run_id, ep, str(a / "summary.json"), "600"])
+    assert inj.stdout.readline().strip() == "ready", inj.stderr.read() if inj.poll() is not None else "no ready line"
+    pa = procs.start(_cmd("run", str(LKS), *lossy, "--connect", ep, "--run-id", run_id, "--out", str(a),
+                          "--save-estimates", "--no-progress", "--deadline", "30"))  # lockstep even on a loaded machine
     pb = procs.start(_cmd("run", str(MITRA), "--out", str(b), "--save-estimates", "--no-progress", "--deadline", "30"))
-    team = _wait_file(a / "team.json", 30)
-    inj = procs.start([sys.executable, "-c", INJECT, str(a / "team.json"), "40"])
-    outs = [p.communicate(timeout=max(1.0, 55 - (time.monotonic() - t0))) for p in (pa, pb)]
-    so, se = inj.communicate(timeout=10)
+    outs = [p.communicate(timeout=600) for p in (pa, pb)]  # only a hang reaches it
+    so, se = inj.communicate(timeout=60)
     assert inj.returncode == 0 and int(so) > 0, se
     for p, (_so, se) in zip((pa, pb), outs):
         assert p.returncode == 0, se
@@ -139,14 +142,14 @@ def test_two_teams_at_once_equal_the_simulator_with_bad_bytes_injected(procs, tm
     _compare(a, LKS, tuple(lossy[1::2]), tmp_path / "sim-a")
     _compare(b, MITRA, (), tmp_path / "sim-b")
     ta, tb = json.loads((a / "team.json").read_text()), json.loads((b / "team.json").read_text())
-    assert ta["run_id"] != tb["run_id"] and not set(ta["endpoints"].values()) & set(tb["endpoints"].values())
+    assert ta["run_id"] == run_id != tb["run_id"]
+    assert ta["connect"] == [ep] and tb["endpoints"] and ep not in tb["endpoints"].values()
     rej = json.loads((a / "summary.json").read_text())["rejected"]
     assert {"2", "4", "plant", "3", "5", "1"} <= set(rej), rej
     # random bytes, wrong types, inf, a wrong shape, an oversized payload, another sender's id
     assert {"decode", "type", "nonfinite", "shape", "size", "sender"} <= set(rej["2"]), rej["2"]
     assert json.loads((b / "summary.json").read_text())["rejected"] == {}
     assert json.loads((a / "manifest.json").read_text())["driver"] == "run"
-    assert team["run_id"] == ta["run_id"]
 
 
 def test_run_through_a_router_equals_the_simulator(procs, tmp_path):
