@@ -214,19 +214,21 @@ def test_kill_an_agent_and_restart_it(procs, tmp_path):
     wait_round(2000)
     r = procs.start(_cmd("agent", "--id", "3", "--team", str(out / "team.json")))
     so, se = p.communicate(timeout=120)
-    assert p.returncode == 0, se  # the scenario's [[expect]] bounds hold (exit 3 otherwise)
-    assert "agent 3 was killed by SIGKILL" in se
     r.communicate(timeout=30)
-    assert r.returncode == 0
     m = pq.read_table(out / "metrics.parquet").to_pydict()
     k, agent, e = np.array(m["k"]), np.array(m["agent"]), np.array(m["error_inf"])
     x = np.array(m["block"]) == "x"
     t = k * 0.01
-    others = x & (agent != 3)
-    assert np.nanmax(e[others & (np.abs(t - 10.0) < 1e-9)]) <= 0.01
     worst = {a: float(np.nanmax(e[x & (agent == a) & (t >= 40.0)])) for a in range(1, 6)}
     print(f"\nworst error over [40, 41] per agent: {worst}")
-    assert all(worst[a] <= KILL_RESTART_BOUND[a] for a in worst), (worst, KILL_RESTART_BOUND)
+    # per agent first: a failure names the agent (the run's exit status only says a bound failed)
+    over = {a: f"{worst[a]:.3g} > {KILL_RESTART_BOUND[a]:g}" for a in worst if not worst[a] <= KILL_RESTART_BOUND[a]}
+    assert not over, f"worst error over [40, 41] after the kill and restart of agent 3: {over}"
+    assert p.returncode == 0, se  # the scenario's [[expect]] bounds hold (exit 3 otherwise)
+    assert "agent 3 was killed by SIGKILL" in se
+    assert r.returncode == 0
+    others = x & (agent != 3)
+    assert np.nanmax(e[others & (np.abs(t - 10.0) < 1e-9)]) <= 0.01
     a3 = x & (agent == 3)
     assert np.isnan(e[a3 & (t > 17.5) & (t < 20.0)]).all()  # dead: NaN rows (killed at t ~ 15-16)
     summary = json.loads((out / "summary.json").read_text())
