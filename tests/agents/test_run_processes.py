@@ -107,7 +107,7 @@ INJECT = textwrap.dedent("""
                     n += 1
             if n == len(targets) * len(bad):
                 print("ready", flush=True)  # the team starts now: it runs while this one injects
-            time.sleep(0.05)
+            time.sleep(0.5)  # a batch every half second: each kind is counted, the router is not flooded
         print(n)
     finally:
         close_session(s)
