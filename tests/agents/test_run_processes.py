@@ -84,10 +84,9 @@ INJECT = textwrap.dedent("""
     import json, sys, time, msgpack, numpy as np
     from transport.keys import Keys
     from transport.zenoh_session import SessionOptions, open_session, close_session
-    team = json.load(open(sys.argv[1]))
-    keys = Keys(team["run_id"])
-    # the team's peers do not gossip: connect to each, retrying soon those not up yet
-    s = open_session(SessionOptions(mode="peer", connect=tuple(team["endpoints"].values()), retry_ms=50))
+    run_id, router, done, seconds = sys.argv[1:5]
+    keys = Keys(run_id)
+    s = open_session(SessionOptions.client([router]))
     good = msgpack.packb({"v": 1, "kind": "est", "from": 2, "k": 3, "arr": {"x": [[6], bytes(48)]}})
     bad = [b"\\xc1 random bytes", bytes(range(256)),
            msgpack.packb({"v": 1, "kind": "est", "from": "two", "k": 3.5, "arr": []}),
@@ -98,16 +97,17 @@ INJECT = textwrap.dedent("""
     targets = [keys.est(2), keys.est(2, 3), keys.est(4), keys.plant_loc(1), keys.plant_truth(),
                keys.ctl("done", 3), keys.ctl("ready", 5), keys.ctl("stats", 1), keys.ctl("ack", -2), keys.ctl("stop", -1)]
     try:
-        end = time.monotonic() + float(sys.argv[2])
+        end = time.monotonic() + float(seconds)
         n = 0
-        done = sys.argv[1].replace("team.json", "summary.json")
         import os
         while time.monotonic() < end and not os.path.exists(done):
             for key in targets:
                 for b in bad:
                     s.put(key, b)
                     n += 1
-            time.sleep(0.05)
+            if n == len(targets) * len(bad):
+                print("ready", flush=True)  # the team starts now: it runs while this one injects
+            time.sleep(0.5)  # a batch every half second: each kind is counted, the router is not flooded
         print(n)
     finally:
         close_session(s)
@@ -116,22 +116,25 @@ INJECT = textwrap.dedent("""
 
 def test_two_teams_at_once_equal_the_simulator_with_bad_bytes_injected(procs, tmp_path):
     """Two rse run at the same time, both in lockstep: lee_kim_shim.toml with drops and
-    delays (paced at 150 rounds/s, so that the run outlasts the injector's start) and
-    mitra_cells.toml as it is (300 rounds, drops with p = 0.32, the omniscient
-    cancellation adversary); an outside process injects bad messages into the first. Both
-    write the same run directory as rse simulate, every estimate equal to the simulator's;
-    each kind of bad message is dropped and counted per sender; nothing stops."""
+    delays, its processes clients of a router, and mitra_cells.toml as it is (300 rounds,
+    drops with p = 0.32, the omniscient cancellation adversary), peers on loopback. An
+    outside process, a client of the same router, injects bad messages into the first from
+    before it starts until its summary is written (the team starts once the injector said
+    it is injecting: no race with a fast team). Both write the same run directory as rse
+    simulate, every estimate equal to the simulator's; each kind of bad message is dropped
+    and counted per sender; nothing stops."""
     lossy = SHORT + ("--set", "network.channel.drop_p=0.2", "--set", "network.channel.delay_max=2",
                      "--set", "expect.0.max=1.0")
     a, b = tmp_path / "a", tmp_path / "b"
-    t0 = time.monotonic()
-    pa = procs.start(_cmd("run", str(LKS), *lossy, "--rate", "150", "--out", str(a), "--save-estimates", "--no-progress",
-                                  "--deadline", "30"))  # lockstep semantics even on a loaded machine
+    _, ep = procs.router("--listen", "tcp/127.0.0.1:0")
+    run_id = f"inject-{os.getpid()}"
+    inj = procs.start([sys.executable, "-c", INJECT, run_id, ep, str(a / "summary.json"), "600"])
+    assert inj.stdout.readline().strip() == "ready", inj.stderr.read() if inj.poll() is not None else "no ready line"
+    pa = procs.start(_cmd("run", str(LKS), *lossy, "--connect", ep, "--run-id", run_id, "--out", str(a),
+                          "--save-estimates", "--no-progress", "--deadline", "30"))  # lockstep even on a loaded machine
     pb = procs.start(_cmd("run", str(MITRA), "--out", str(b), "--save-estimates", "--no-progress", "--deadline", "30"))
-    team = _wait_file(a / "team.json", 30)
-    inj = procs.start([sys.executable, "-c", INJECT, str(a / "team.json"), "40"])
-    outs = [p.communicate(timeout=max(1.0, 55 - (time.monotonic() - t0))) for p in (pa, pb)]
-    so, se = inj.communicate(timeout=10)
+    outs = [p.communicate(timeout=600) for p in (pa, pb)]  # only a hang reaches it
+    so, se = inj.communicate(timeout=60)
     assert inj.returncode == 0 and int(so) > 0, se
     for p, (_so, se) in zip((pa, pb), outs):
         assert p.returncode == 0, se
@@ -139,14 +142,14 @@ def test_two_teams_at_once_equal_the_simulator_with_bad_bytes_injected(procs, tm
     _compare(a, LKS, tuple(lossy[1::2]), tmp_path / "sim-a")
     _compare(b, MITRA, (), tmp_path / "sim-b")
     ta, tb = json.loads((a / "team.json").read_text()), json.loads((b / "team.json").read_text())
-    assert ta["run_id"] != tb["run_id"] and not set(ta["endpoints"].values()) & set(tb["endpoints"].values())
+    assert ta["run_id"] == run_id != tb["run_id"]
+    assert ta["connect"] == [ep] and tb["endpoints"] and ep not in tb["endpoints"].values()
     rej = json.loads((a / "summary.json").read_text())["rejected"]
     assert {"2", "4", "plant", "3", "5", "1"} <= set(rej), rej
     # random bytes, wrong types, inf, a wrong shape, an oversized payload, another sender's id
     assert {"decode", "type", "nonfinite", "shape", "size", "sender"} <= set(rej["2"]), rej["2"]
     assert json.loads((b / "summary.json").read_text())["rejected"] == {}
     assert json.loads((a / "manifest.json").read_text())["driver"] == "run"
-    assert team["run_id"] == ta["run_id"]
 
 
 def test_run_through_a_router_equals_the_simulator(procs, tmp_path):
@@ -170,19 +173,32 @@ def test_run_through_a_router_equals_the_simulator(procs, tmp_path):
     _compare(out, LKS, ov, tmp_path / "sim")
 
 
+# per agent, the worst infinity-norm error over [40, 41] after agent 3 was killed at t = 15
+# and restarted at t = 20. Measured (two runs, loaded machine): 0.2165, 5.7e-9 to 1.1e-8,
+# 1.1e-7 to 5.6e-7, 0.0722, 0.1444 (rse simulate without the kill: 0.2165, 9.3e-14, 1.2e-14,
+# 0.0722, 0.1443). Agents 2 and 3 within about a hundred times that (the rejoin comes
+# seconds later on a loaded machine: at t = 30 agent 2 was at 1.8e-4 to 2.7e-3), agent 1
+# within the scenario's 0.25; agents 4 and 5, where the attack sets the error, within 40%
+# of it. Agent 3 rejoining with a frozen estimate, or anyone 1,000 times less accurate,
+# fails these.
+KILL_RESTART_BOUND = {1: 0.25, 2: 1e-6, 3: 1e-5, 4: 0.1, 5: 0.2}
+
+
 def test_kill_an_agent_and_restart_it(procs, tmp_path):
-    """Realtime at 100 Hz (dt = 0.01) up to t = 31 s: kill agent 3 at t = 15 s, restart it
-    at t = 20 s with `rse agent --id 3 --team`; the others stay within the bounds, agent 3
-    re-converges by t = 30 s."""
+    """Lockstep paced at 100 Hz (dt = 0.01) up to t = 41 s: kill agent 3 at t = 15 s,
+    restart it at t = 20 s with `rse agent --id 3 --team`; every agent within its bound
+    over [40, 41] (KILL_RESTART_BOUND), agent 3 re-converged. Lockstep, so that every
+    agent's estimate of every round is recorded on a loaded machine (realtime there left
+    agents late for most rounds and the run failed its t = 10 bound with nothing wrong)."""
     out = tmp_path / "run"
-    p = procs.start(_cmd("run", str(LKS), "--set", "run.dt=0.01", "--set", "run.duration=31",
-                         "--set", "output.window=[30.0, 31.0]", "--mode", "realtime", "--rate", "100",
+    p = procs.start(_cmd("run", str(LKS), "--set", "run.dt=0.01", "--set", "run.duration=41",
+                         "--set", "output.window=[40.0, 41.0]", "--mode", "lockstep", "--rate", "100",
                          "--out", str(out), "--no-progress", "--no-rerun"))
-    team = _wait_file(out / "team.json", 20)
+    team = _wait_file(out / "team.json", 60)
     pid3 = team["pids"]["agent 3"]
 
     def wait_round(k: int) -> None:
-        end = time.monotonic() + 30
+        end = time.monotonic() + 120
         while time.monotonic() < end:
             try:
                 if json.loads((out / "status.json").read_text())["round"] >= k:
@@ -197,21 +213,24 @@ def test_kill_an_agent_and_restart_it(procs, tmp_path):
     os.kill(pid3, signal.SIGKILL)
     wait_round(2000)
     r = procs.start(_cmd("agent", "--id", "3", "--team", str(out / "team.json")))
-    so, se = p.communicate(timeout=25)
-    assert p.returncode == 0, se  # the scenario's [[expect]] bounds hold (exit 3 otherwise)
-    assert "agent 3 was killed by SIGKILL" in se
-    r.communicate(timeout=10)
-    assert r.returncode == 0
+    so, se = p.communicate(timeout=120)
+    r.communicate(timeout=30)
     m = pq.read_table(out / "metrics.parquet").to_pydict()
     k, agent, e = np.array(m["k"]), np.array(m["agent"]), np.array(m["error_inf"])
     x = np.array(m["block"]) == "x"
     t = k * 0.01
+    worst = {a: float(np.nanmax(e[x & (agent == a) & (t >= 40.0)])) for a in range(1, 6)}
+    print(f"\nworst error over [40, 41] per agent: {worst}")
+    # per agent first: a failure names the agent (the run's exit status only says a bound failed)
+    over = {a: f"{worst[a]:.3g} > {KILL_RESTART_BOUND[a]:g}" for a in worst if not worst[a] <= KILL_RESTART_BOUND[a]}
+    assert not over, f"worst error over [40, 41] after the kill and restart of agent 3: {over}"
+    assert p.returncode == 0, se  # the scenario's [[expect]] bounds hold (exit 3 otherwise)
+    assert "agent 3 was killed by SIGKILL" in se
+    assert r.returncode == 0
     others = x & (agent != 3)
     assert np.nanmax(e[others & (np.abs(t - 10.0) < 1e-9)]) <= 0.01
-    assert np.nanmax(e[others & (t >= 30.0)]) <= 0.25
     a3 = x & (agent == 3)
     assert np.isnan(e[a3 & (t > 17.5) & (t < 20.0)]).all()  # dead: NaN rows (killed at t ~ 15-16)
-    assert np.nanmax(e[a3 & (t >= 30.0)]) <= 0.25  # re-converged by t = 30
     summary = json.loads((out / "summary.json").read_text())
     events = [ev["event"] for ev in summary["membership"] if ev["role"] == "agent" and ev["id"] == 3]
     assert events[:3] == ["join", "leave", "join"]

@@ -560,7 +560,7 @@ def test_a_secure_compose_file_runs_with_each_service_seeing_only_its_mounts(run
     """rse compose --secure of lee_kim_shim.toml (shortened), each service's command run as
     a local process in a directory holding only that service's mounts (its own key, ca.pem,
     the scenario): the team runs to the end over the TLS router, every client is healthy
-    while it runs, the monitor writes the run directory and serves the web viewer."""
+    while it waits for its team, the monitor writes the run directory and serves the web viewer."""
     pytest.importorskip("cryptography", reason="rse certs needs the cryptography package (pip install '.[secure]')")
     from transport.certs import write_certs
 
@@ -583,23 +583,29 @@ def test_a_secure_compose_file_runs_with_each_service_seeing_only_its_mounts(run
     assert ep == f"tls/127.0.0.1:{port}"
     team = procs.start(rse_cmd(*_localize(spec["services"]["team"]["command"], dirs["team"], port, ports)))
     assert team.wait(timeout=120) == 0, team.communicate()[1]  # the design once: the agents start after it
+    # every service but the last agent: the team cannot start without it, so plant, monitor
+    # and the other agents stay connected to the router, waiting, while their health is checked
+    # (not a race with a 600-round run that a quiet machine finishes in seconds)
+    last = f"agent-{ids[-1]}"
     for name, svc in spec["services"].items():
-        if name not in ("router", "team"):
+        if name not in ("router", "team", last):
             run[name] = procs.start(rse_cmd(*_localize(svc["command"], dirs[name], port, ports)))
     health = {}
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and run["plant"].poll() is None:
+    deadline = time.monotonic() + 120  # only a hang reaches it
+    while time.monotonic() < deadline and len(health) < 3:
         for name in ("plant", "agent-1", "monitor"):
-            if name not in health and run[name].poll() is None and _health(run[name].pid).returncode == 0:
+            assert run[name].poll() is None, f"{name} exited while waiting for its team: {run[name].communicate()[1]}"
+            if name not in health and _health(run[name].pid).returncode == 0:
                 health[name] = True
         time.sleep(0.3)
-    assert run["plant"].wait(timeout=60) == 0, run["plant"].communicate()[1]
+    assert set(health) == {"plant", "agent-1", "monitor"}, health  # connected to the router
+    run[last] = procs.start(rse_cmd(*_localize(spec["services"][last]["command"], dirs[last], port, ports)))
+    assert run["plant"].wait(timeout=300) == 0, run["plant"].communicate()[1]
     for i in ids:
         p = run[f"agent-{i}"]
-        assert p.wait(timeout=30) == 0, p.communicate()[1]
-    assert set(health) == {"plant", "agent-1", "monitor"}, health  # connected to the router while running
+        assert p.wait(timeout=60) == 0, p.communicate()[1]
     out = dirs["monitor"] / "runs" / "compose-test"
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 120
     while not (out / "summary.json").exists() and time.monotonic() < deadline:
         time.sleep(0.2)
     summary = json.loads((out / "summary.json").read_text())

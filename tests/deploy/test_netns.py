@@ -24,7 +24,8 @@ agents skip rounds and their errors grow with nothing wrong in the code (load av
 on two cores, measured: 0.19 at t = 10, agent 1 at 0.81 over [22, 24]). Each case therefore
 measures the share of rounds every agent reported before the fault and over the window;
 the accuracy bounds are asserted when it is at least ``KEPT_UP``, otherwise the case skips its accuracy part
-with that figure (the fault-tolerance checks are asserted whatever the load).
+with that figure (the fault-tolerance checks, and ``BOUND_LOADED`` for every agent over the
+window, are asserted whatever the load).
 
 Needs root (skipped otherwise, or when ``ip netns add`` fails). Each case is bounded
 (``CASE_S``, only a hang reaches it) and kills every process it started and deletes its
@@ -73,6 +74,8 @@ BOUND_END = {1: BOUND_ATTACK, 2: 0.05, 3: 0.1, 4: BOUND_ATTACK, 5: BOUND_ATTACK}
 # fault and over the window (a quiet machine: 99.8 to 100%; load average 40 to 50 on two
 # cores: 91 to 98% before the fault, and the bounds still held; at load 60 agent 1 reached 0.81)
 KEPT_UP = 0.9
+# the bound over [22, 24] asserted also when the machine did not keep up (see _fault_case)
+BOUND_LOADED = 1.5
 
 WATCH = """
 import os, sys, time
@@ -273,6 +276,9 @@ def _fault_case(net: Net, tmp_path: Path, name: str, cut: Any, heal: Any, faulty
     print(f"\n{name}: {fig}")
     # the faulty agents back within 3 s of the healing (measured: 0.3 to 0.5 s)
     assert max(fig["back_after_s"].values()) <= 3.0, fig["back_after_s"]
+    # whatever the load: no agent far off (an overloaded machine's worst was 0.81, agent 1 at
+    # load 60; an unattacked agent 1,000 times less accurate than today is at 1.6 or more)
+    assert max(fig["worst_end"]) <= BOUND_LOADED, (fig["worst_end"], BOUND_LOADED)
     if fig["present_before_and_end"] < KEPT_UP:
         pytest.skip(f"the machine did not keep the {RATE:g} Hz rate: an agent reported only "
                     f"{fig['present_before_and_end']:.1%} of the rounds before the fault or over the window "
