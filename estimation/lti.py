@@ -167,6 +167,12 @@ def float_horizon(Ad: np.ndarray, *, x_norm: float, limit: float = FLOAT_SIGNAL_
     (conservative; ``norm=2`` for the 2-norm itself). Once ``||Ad^j|| < 1`` the powers can never again exceed the largest one seen before
     (``||Ad^(q j + r)|| <= ||Ad^r||``), so a stable plant returns after a few steps.
 
+    A sparse ``Ad`` that splits into decoupled blocks (a diagonal or block-diagonal plant,
+    :func:`decoupled_groups`) is raised to its powers block by block, blocks of one size
+    stacked: ``||Ad^j||_F^2`` is the sum of the blocks' squares (``||Ad^j||_2`` the largest
+    block's), and no dense ``(n, n)``
+    power is formed (a 1,024-agent cell team's ``n = 5120`` needs 20 kB, not 400 MB).
+
     Parameters
     ----------
     Ad : (n, n) array, the one-round transition matrix
@@ -178,16 +184,57 @@ def float_horizon(Ad: np.ndarray, *, x_norm: float, limit: float = FLOAT_SIGNAL_
     budget = np.log(limit / x_norm)
     if budget < 0:
         return 0
-    P, log_scale = np.eye(A.shape[0]), 0.0
+    groups = decoupled_groups(A)
+    if len(groups) == 1 and groups[0].shape[0] == 1:  # one coupled block: the dense product
+        As = [A]
+        Ps = [np.eye(A.shape[0])]
+    else:
+        As = [A[idx[:, :, None], idx[:, None, :]] for idx in groups]  # (blocks, s, s) per size s
+        Ps = [np.broadcast_to(np.eye(idx.shape[1]), Ab.shape).copy() for idx, Ab in zip(groups, As)]
+    log_scale = 0.0
     for k in range(1, max_rounds + 1):
-        P = A @ P
-        nP = float(np.linalg.norm(P, norm))
+        Ps = [Ab @ P for Ab, P in zip(As, Ps)]
+        if len(Ps) == 1 and Ps[0].ndim == 2:
+            nP = float(np.linalg.norm(Ps[0], norm))
+        elif norm == "fro":  # the blocks' squares add up
+            nP = float(np.sqrt(sum(float(np.vdot(P, P)) for P in Ps)))
+        else:  # an induced norm of a block-diagonal matrix: the largest block's
+            nP = max(float(np.max(np.linalg.norm(P, norm, axis=(1, 2)))) for P in Ps)
         if nP == 0.0:
             return max_rounds
         log_scale += np.log(nP)
-        P /= nP
+        for P in Ps:
+            P /= nP
         if log_scale > budget:
             return k - 1
         if log_scale < 0.0:
             return max_rounds
     return max_rounds
+
+
+def decoupled_groups(A: np.ndarray) -> list[np.ndarray]:
+    """The decoupled blocks of a square ``A`` (connected components of its sparsity
+    pattern), grouped by size: one ``(blocks, size)`` int array of state indices per size.
+
+    Only a sparse ``A`` is split (at most ``n^2 / 16`` non-zeros: the index arrays then stay
+    below an eighth of ``A``'s memory); a denser one is one block, ``[arange(n)[None]]``.
+    """
+    n = A.shape[0]
+    whole = [np.arange(n)[None, :]]
+    if n < 2 or np.count_nonzero(A) > n * n // 16:
+        return whole
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rows, cols = np.nonzero(A)
+    ncomp, labels = connected_components(coo_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n)),
+                                         directed=True, connection="weak")
+    if ncomp == 1:
+        return whole
+    order = np.argsort(labels, kind="stable")
+    sizes = np.bincount(labels, minlength=ncomp)
+    members = np.split(order, np.cumsum(sizes)[:-1])
+    by_size: dict[int, list[np.ndarray]] = {}
+    for m in members:
+        by_size.setdefault(m.size, []).append(m)
+    return [np.stack(ms) for _, ms in sorted(by_size.items())]

@@ -33,3 +33,34 @@ def test_a_run_past_the_horizon_of_an_unstable_plant_is_refused(tmp_path):
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "run.rounds" in lines[0] and "safe horizon 1895" in lines[0], p.stderr
     assert "RuntimeWarning" not in p.stdout + p.stderr
+
+
+def test_a_block_diagonal_plant_gives_the_dense_horizon_block_by_block():
+    # 40 decoupled blocks of sizes 1..3, states shuffled: split into blocks grouped by
+    # size, the horizon is the dense computation's
+    import scipy.linalg as sl
+
+    from estimation.lti import decoupled_groups
+
+    def dense(A, x_norm, max_rounds):
+        budget, P, log_scale = np.log(FLOAT_SIGNAL_LIMIT / x_norm), np.eye(A.shape[0]), 0.0
+        for k in range(1, max_rounds + 1):
+            P = A @ P
+            nP = np.linalg.norm(P)
+            log_scale += np.log(nP)
+            P /= nP
+            if log_scale > budget:
+                return k - 1
+        return max_rounds
+
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        sizes = rng.integers(1, 4, size=40)
+        A = sl.block_diag(*[rng.normal(size=(s, s)) * 0.7 for s in sizes])
+        perm = rng.permutation(A.shape[0])
+        A = A[np.ix_(perm, perm)]
+        groups = decoupled_groups(A)
+        assert sorted(g.shape[1] for g in groups for _ in range(g.shape[0])) == sorted(sizes.tolist())
+        expected = dense(A, 1.0, 20_000)
+        assert expected < 20_000
+        assert float_horizon(A, x_norm=1.0, max_rounds=20_000) == expected
