@@ -9,9 +9,10 @@ products) and stacks the consensus of all nodes as ``(M, v, n)`` arrays. In a cl
 (perfect channel) the innovations ``u``, ``w`` are formed from the stacked ``J``, ``eta``
 in the per-node order of the neighbours (the same sums: ``Ahat^0`` is the identity); over
 any other channel each node forms them from its own inbox
-(:meth:`~estimation.dynamic_consensus.ConsensusNode.innovations`). The decoder runs node by
-node (its support choice is an argmin: near-ties in the first rounds must break as they
-do per node).
+(:meth:`~estimation.dynamic_consensus.ConsensusNode.innovations`). The decoder computes
+every node's residual norms exactly as the node does (its support choice is an argmin:
+near-ties in the first rounds must break as they do per node), for all nodes in one
+stacked call whose slices are the per-node matrix-vector products.
 
 Every operation is the per-node one on the same values (a stacked ``(M, v, n) @ (n, n)``
 product is the per-node product slice by slice), so the estimates, the diagnostics and
@@ -28,6 +29,19 @@ import numpy as np
 from .batching import Batch
 from .dynamic_consensus import consensus_update
 from .errors import NumericalError
+
+
+def _dots(Y: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``[a @ y for y in Y]`` in one call: ``(M, 1, n) @ (n, 1)`` runs the same dot as each
+    1-D ``a @ y`` (a plain ``Y @ a`` is a matrix-vector product that may sum in another
+    order)."""
+    return np.matmul(Y[:, None, :], a[:, None])[:, 0, 0]
+
+
+def _matvecs(A: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``[A_m @ x_m for m]`` (``A``: ``(M, r, c)`` or ``(1, r, c)``, ``X``: ``(M, c)``) in one
+    stacked call: each ``(r, c) @ (c, 1)`` slice is the per-node matrix-vector product."""
+    return np.matmul(A, X[:, :, None])[:, :, 0]
 
 
 class MaoBatch(Batch):
@@ -80,11 +94,11 @@ class MaoBatch(Batch):
         n = alpha.shape[0]
         full = count >= n
         have = ~np.isnan(yv)
-        pred = -np.array([float(alpha @ y) for y in Y])  # the per-node dot
+        pred = -_dots(Y, alpha)
         check = full & have & ~flagged
         if check.any():
             aa = np.abs(alpha)
-            scale = np.abs(yv) + np.array([float(aa @ np.abs(y)) for y in Y])
+            scale = np.abs(yv) + _dots(np.abs(Y), aa)
             r = np.abs(yv - pred)
             with np.errstate(invalid="ignore", divide="ignore"):
                 resid = np.where(scale > 0, r / scale, 0.0)
@@ -110,10 +124,12 @@ class MaoBatch(Batch):
         self._J, self._b, self._eta = consensus_update(self._J, self._b, u, w, phi, self._A_T, self._g)
         des = self._des
         Z = (des.p * self._J).reshape(len(self.members), -1)  # every node's compressed window
-        if self._secure:  # node by node: the support choice is an argmin, kept exactly the per-node one
+        if self._secure:  # the per-node residual norms, stacked (the argmin sees the per-node values)
             R, Xs, sups = self._R, self._X, self._supports
-            t = [int(np.argmin(np.linalg.norm(R @ z, axis=1))) for z in Z]
-            xs = np.array([Xs[ti] @ z for ti, z in zip(t, Z)])
+            M, T, q = Z.shape[0], R.shape[0], R.shape[1]
+            r = _matvecs(R.reshape(T * q, q)[None], Z).reshape(M, T, q)
+            t = np.argmin(np.sqrt(np.add.reduce(r * r, axis=2)), axis=1)  # np.linalg.norm(R @ z, axis=1)
+            xs = _matvecs(Xs[t], Z)
             supports = [sups[ti] for ti in t]
         else:
             from .secure_decoder import least_squares_decode
@@ -121,11 +137,13 @@ class MaoBatch(Batch):
             out = [least_squares_decode(z.reshape(des.v, -1), des.O_blocks, des.D) for z in Z]
             xs, supports = np.array([r.x for r in out]), [r.support for r in out]
         Aw = des.A_window
-        X = np.array([Aw @ x for x in xs])
+        X = _matvecs(Aw[None], xs)
         limit = self.members[0].signal_limit
+        bad = ~np.isfinite(X).all(axis=1) | (np.abs(X).max(axis=1, initial=0.0) > limit)
+        if bad.any():
+            m = self.members[int(np.flatnonzero(bad)[0])]
+            raise NumericalError(f"node {m.node}, round {k}: estimate beyond the signal limit {limit:g}")
         for m, x, sup in zip(self.members, X, supports):
-            if not np.all(np.isfinite(x)) or np.max(np.abs(x), initial=0.0) > limit:
-                raise NumericalError(f"node {m.node}, round {k}: estimate beyond the signal limit {limit:g}")
             m._x, m.support, m._k = x, sup, k
         self._k = k
         self._X_now = X
