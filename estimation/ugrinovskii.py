@@ -221,11 +221,19 @@ class _NodeBase(Batchable):
     def _flows(self) -> tuple[RiccatiFlow, ...]:
         return (self._obs, self._det) if self._controlled else (self._obs,)
 
-    def _discretisation(self) -> tuple[np.ndarray, np.ndarray]:
-        flows = self._flows()
-        stale = self._disc is None or any(
-            np.linalg.norm(fl.deviation - D0) > tol for fl, (D0, tol) in zip(flows, self._ref)
+    def _stale(self) -> bool:
+        """Whether the discretisation must be recomputed (none yet, or a Riccati solution
+        moved by more than ``gain_rtol`` since the last one)."""
+        return self._disc is None or any(
+            np.linalg.norm(fl.deviation - D0) > tol for fl, (D0, tol) in zip(self._flows(), self._ref)
         )
+
+    def _discretisation(self, stale: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(Phi, Gd)`` of the step; ``stale``: :meth:`_stale` when already known (a batch
+        tests every node's flows at once)."""
+        flows = self._flows()
+        if stale is None:
+            stale = self._stale()
         if stale:
             M, G = self._system()
             d, m = M.shape[0], G.shape[1]

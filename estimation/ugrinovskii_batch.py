@@ -5,7 +5,8 @@ The per-node definition is :meth:`estimation.ugrinovskii._NodeBase.step`: the he
 integrator of the node dynamics (8), (17) with the gains frozen over the step, then one
 exact step of each Riccati flow (35), (41). :class:`UgrinovskiiBatch` keeps the per-node
 code for the inputs and for the gain refresh (each node re-discretises when its own
-Riccati solution moved), and stacks the rest: the node states ``s+ = Phi s + Gd v`` of all
+Riccati solution moved; whether it moved is tested for every node's flows at once), and
+stacks the rest: the node states ``s+ = Phi s + Gd v`` of all
 nodes in one product and every observer / detector Riccati flow in one batched step
 (:class:`estimation.hinf_riccati.FlowStack`).
 
@@ -34,17 +35,57 @@ class UgrinovskiiBatch(Batch):
         dims = {m._state_dim for m in ms}
         self._same = len(dims) == 1
         groups: dict[tuple, list] = {}
-        for m in ms:
-            for fl in m._flows():
+        owner: dict[tuple, list] = {}  # per group: (member, position among its flows) of every flow
+        for i, m in enumerate(ms):
+            for a, fl in enumerate(m._flows()):
                 groups.setdefault(fl._Delta.shape, []).append(fl)
+                owner.setdefault(fl._Delta.shape, []).append((i, a))
         self._flows = [FlowStack(g) for g in groups.values()]
+        self._owner = [np.array([i for i, _ in owner[key]]) for key in groups]
+        self._slot = [owner[key] for key in groups]
+        self._ref: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self._flows)
+
+    def _stale(self) -> np.ndarray:
+        """Every member's :meth:`~estimation.ugrinovskii._NodeBase._stale`, the flows of one
+        size tested in one stacked norm (``|Delta - Delta_0|_F > tol``)."""
+        ms = self.members
+        stale = np.array([m._disc is None for m in ms])
+        if stale.all():
+            return stale
+        for g, (stack, own, slots) in enumerate(zip(self._flows, self._owner, self._slot)):
+            ref = self._ref[g]
+            if ref is None:
+                continue
+            d = np.stack([f._Delta for f in stack.flows]) - ref[0]
+            moved = np.sqrt(np.einsum("fij,fij->f", d, d)) > ref[1]
+            stale[own[moved]] = True
+        return stale
+
+    def _keep_refs(self, refreshed: np.ndarray) -> None:
+        """The reference solutions of the members just re-discretised (their ``_ref``)."""
+        ms = self.members
+        for g, slots in enumerate(self._slot):
+            ref = self._ref[g]
+            if ref is None:
+                if any(ms[i]._disc is None for i, _ in slots):
+                    continue
+                self._ref[g] = (np.stack([ms[i]._ref[a][0] for i, a in slots]),
+                                np.array([ms[i]._ref[a][1] for i, a in slots]))
+                continue
+            for s, (i, a) in enumerate(slots):
+                if refreshed[i]:
+                    ref[0][s], ref[1][s] = ms[i]._ref[a]
 
     def step(self, k: int, measurements, inboxes) -> list[np.ndarray]:
         ms = self.members
         if any(m._k is None or k != m._k + 1 for m in ms) or not self._same:
+            self._ref = [None] * len(self._flows)  # the members keep their own references
             return [m.step(k, y, inbox) for m, y, inbox in zip(ms, measurements, inboxes)]
         V = [m._inputs(y, inbox) for m, y, inbox in zip(ms, measurements, inboxes)]
-        disc = [m._discretisation() for m in ms]
+        stale = self._stale()
+        disc = [m._discretisation(bool(st)) for m, st in zip(ms, stale)]
+        if stale.any():
+            self._keep_refs(stale)
         Phi = np.stack([d[0] for d in disc])
         Gd = np.stack([d[1] for d in disc]) if len({d[1].shape for d in disc}) == 1 else None
         S = np.stack([m._s for m in ms])
