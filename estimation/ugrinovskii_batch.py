@@ -44,6 +44,8 @@ class UgrinovskiiBatch(Batch):
         self._owner = [np.array([i for i, _ in owner[key]]) for key in groups]
         self._slot = [owner[key] for key in groups]
         self._ref: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self._flows)
+        self._S: np.ndarray | None = None  # the stacked states after a stacked step
+        self._finite = True  # ... all finite (so are the payloads, their leading parts)
 
     def _stale(self) -> np.ndarray:
         """Every member's :meth:`~estimation.ugrinovskii._NodeBase._stale`, the flows of one
@@ -78,6 +80,7 @@ class UgrinovskiiBatch(Batch):
 
     def step(self, k: int, measurements, inboxes) -> list[np.ndarray]:
         ms = self.members
+        self._S = None
         if any(m._k is None or k != m._k + 1 for m in ms) or not self._same:
             self._ref = [None] * len(self._flows)  # the members keep their own references
             return [m.step(k, y, inbox) for m, y, inbox in zip(ms, measurements, inboxes)]
@@ -95,6 +98,7 @@ class UgrinovskiiBatch(Batch):
             Snew = (Phi @ S[:, :, None])[:, :, 0] + np.stack([g @ v for (_, g), v in zip(disc, V)])
         for stack in self._flows:
             stack.step()
+        self._S, self._finite = Snew, bool(np.isfinite(Snew).all())
         out = []
         for m, s in zip(ms, Snew):
             m._s, m._k = s, k
@@ -108,7 +112,8 @@ class UgrinovskiiBatch(Batch):
         per-message checks are skipped only while every payload is finite)."""
         ms = self.members
         last = self._last
-        if self.rows is None or (last is not None and not all(np.all(np.isfinite(v)) for v in last)):
+        finite = last is None or (self._finite if self._S is not None else all(np.all(np.isfinite(v)) for v in last))
+        if self.rows is None or not finite:
             return super().step_closed(k, y)
         if last is not None:
             for m, nb in zip(ms, self.in_neighbours):
@@ -120,4 +125,6 @@ class UgrinovskiiBatch(Batch):
 
     def estimates(self) -> np.ndarray:
         n = self._n
+        if self._S is not None:  # the stacked states of the last step (each member's _s is a row)
+            return self._S[:, :n].copy()
         return np.stack([m._s[:n] for m in self.members])
