@@ -234,7 +234,7 @@ class _NodeBase(Batchable):
         flows = self._flows()
         if stale is None:
             stale = self._stale()
-        if stale:
+        if stale or self._disc is None:
             M, G = self._system()
             d, m = M.shape[0], G.shape[1]
             aug = np.zeros((d + m, d + m))

@@ -54,7 +54,7 @@ class UgrinovskiiBatch(Batch):
         stale = np.array([m._disc is None for m in ms])
         if stale.all():
             return stale
-        for g, (stack, own, slots) in enumerate(zip(self._flows, self._owner, self._slot)):
+        for g, (stack, own) in enumerate(zip(self._flows, self._owner)):
             ref = self._ref[g]
             if ref is None:
                 continue
