@@ -42,11 +42,11 @@ def test_a_block_diagonal_plant_gives_the_dense_horizon_block_by_block():
 
     from estimation.lti import decoupled_groups
 
-    def dense(A, x_norm, max_rounds):
+    def dense(A, x_norm, max_rounds, norm):
         budget, P, log_scale = np.log(FLOAT_SIGNAL_LIMIT / x_norm), np.eye(A.shape[0]), 0.0
         for k in range(1, max_rounds + 1):
             P = A @ P
-            nP = np.linalg.norm(P)
+            nP = np.linalg.norm(P, norm)
             log_scale += np.log(nP)
             P /= nP
             if log_scale > budget:
@@ -61,6 +61,7 @@ def test_a_block_diagonal_plant_gives_the_dense_horizon_block_by_block():
         A = A[np.ix_(perm, perm)]
         groups = decoupled_groups(A)
         assert sorted(g.shape[1] for g in groups for _ in range(g.shape[0])) == sorted(sizes.tolist())
-        expected = dense(A, 1.0, 20_000)
-        assert expected < 20_000
-        assert float_horizon(A, x_norm=1.0, max_rounds=20_000) == expected
+        for norm in ("fro", 2):  # Frobenius: the blocks' squares add up; 2-norm: the largest block's
+            expected = dense(A, 1.0, 20_000, norm)
+            assert expected < 20_000
+            assert float_horizon(A, x_norm=1.0, max_rounds=20_000, norm=norm) == expected
