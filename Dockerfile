@@ -3,8 +3,10 @@
 #
 #   target   tag (what rse compose names)            what it carries
 #   agent    resilient-state-estimation-agent        the package + numpy, eclipse-zenoh, msgpack, click, rich,
-#                                                    psutil: rse router, rse agent --team (an agent's slice)
-#   monitor  resilient-state-estimation-monitor      the agent image + rerun-sdk, pyarrow
+#                                                    psutil: rse router, rse agent --team (an agent's slice),
+#                                                    rse plant --team (the plant's slice)
+#   monitor  resilient-state-estimation-monitor      the agent image + rerun-sdk, pyarrow, pydantic:
+#                                                    rse monitor --team (the built experiment)
 #   full     resilient-state-estimation (default)    the package with all its dependencies and the lmi
 #                                                    extra (cvxpy): the offline designs, every rse command
 #
@@ -63,12 +65,13 @@ FROM base AS agent-deps
 ARG PIP_INDEX_URL PIP_EXTRA_INDEX_URL PIP_TRUSTED_HOST
 RUN pip install "numpy>=1.26" "eclipse-zenoh>=1.0" "msgpack>=1.0" "click>=8.1" "rich>=13" "psutil>=5.9"
 
-# the monitor's on top: the Rerun recording and stream, the metrics table. rerun_cli is the
-# native viewer (rr.spawn, 280 MB), which a container never starts: the web viewer it
-# serves and the recording file are rerun_bindings'
+# the monitor's on top: the Rerun recording and stream, the metrics table, and pydantic (the
+# built experiment it reads holds the validated scenario: its bounds, its names). rerun_cli
+# is the native viewer (rr.spawn, 280 MB), which a container never starts: the web viewer
+# it serves and the recording file are rerun_bindings'
 FROM agent-deps AS monitor-deps
 ARG PIP_INDEX_URL PIP_EXTRA_INDEX_URL PIP_TRUSTED_HOST
-RUN pip install "rerun-sdk>=0.20" "pyarrow>=14" \
+RUN pip install "rerun-sdk>=0.20" "pyarrow>=14" "pydantic>=2.5" \
     && python -c "import rerun_cli, shutil, os; shutil.rmtree(os.path.dirname(rerun_cli.__file__))"
 
 # (the package comes last in each role image: a code change rebuilds only that layer)

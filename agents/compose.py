@@ -2,24 +2,27 @@
 
 ``rse compose SCENARIO`` (:mod:`agents.cli.compose`) writes it with :func:`compose_spec`
 and :func:`render`. The images are the Dockerfile's role targets (:func:`role_images`):
-the *full* image (every ``rse`` command, the offline design stack) and the slim *agent*
-image (numpy, Zenoh, msgpack, click and the package), both with ``rse`` as entry point.
-The services:
+the *full* image (every ``rse`` command, the offline design stack), the slim *agent*
+image (numpy, Zenoh, msgpack, click and the package) and the *monitor* image (the agent
+image with Rerun, pyarrow and pydantic), all with ``rse`` as entry point. The services:
 
 * ``router`` (agent image): ``rse router --listen tcp/0.0.0.0:7447`` (port 7447
   published, so agents on other hosts can join); healthy once it listens (``python -m
   agents.healthcheck``), and every other service waits for that;
 * ``team`` (full image, one-shot): builds the experiment once, the offline design
-  included, and writes ``team.json`` and each agent's slice (:func:`write_team`) to the
-  volume ``team``; it exits 0 and the agents wait for that;
-* ``plant`` and ``monitor`` (full image) and ``agent-{i}`` (agent image, one per agent of
-  the scenario): Zenoh clients of the router (``--client --connect tcp/router:7447``) with
-  the same run id; the plant and the monitor read the scenario file mounted read-only at
-  ``/scenario/NAME.toml``, an agent reads only its slice (``--team /team/team.json``:
-  no scenario, no design);
+  included, and writes ``team.json``, each agent's slice, the plant's slice and the built
+  experiment the monitor reads (:func:`write_team`) to the volume ``team``; it exits 0 and
+  every other process of the team waits for that;
+* ``plant`` (agent image), ``monitor`` (monitor image) and ``agent-{i}`` (agent image,
+  one per agent of the scenario): Zenoh clients of the router (``--client --connect
+  tcp/router:7447``) with the same run id, each started from its part of the team
+  directory (``--team /team/team.json``: no scenario file, no design); only ``team``
+  mounts the scenario file, read-only at ``/scenario/NAME.toml``;
 * the monitor writes the run directory to the volume ``runs`` (``/runs/RUN_ID``) and
   serves the Rerun web viewer (ports 9090 and 9876 published);
-* agents restart on failure (a crashed agent rejoins the running team from its slice).
+* agents restart on failure (a crashed agent rejoins the running team from its slice);
+* every long-running service's health check runs every few seconds (the images' 10 s
+  interval would delay ``healthy`` by up to 10 s after a process joins).
 
 With ``secure`` (a directory written by ``rse certs``) every process presents its own TLS
 identity: a service mounts ``ca.pem`` and its own ``IDENTITY.pem`` / ``IDENTITY.key``
@@ -50,6 +53,8 @@ CERTS_DIR = "/certs"
 RUNS_DIR = "/runs"
 TEAM_DIR = "/team"  # the volume "team" in an agent (read-only); the team service writes it at /runs
 HEALTHCHECK = ["CMD", "python", "-m", "agents.healthcheck"]
+#: the check of a client of the router (one ``python -m agents.healthcheck``: ~0.05 s of CPU)
+CLIENT_HEALTH = {"interval": "3s", "timeout": "10s", "retries": 5, "start_period": "60s"}
 
 
 class Quoted(str):
@@ -62,28 +67,33 @@ class Flow(list):
 
 def role_images(image: str) -> dict[str, str]:
     """The images of the roles for ``image`` (the full one, ``NAME[:TAG]``): ``full`` is
-    ``image`` itself, ``agent`` is ``NAME-agent[:TAG]`` (the Dockerfile's targets, tagged as
-    its header says)."""
+    ``image`` itself, ``agent`` is ``NAME-agent[:TAG]``, ``monitor`` ``NAME-monitor[:TAG]``
+    (the Dockerfile's targets, tagged as its header says)."""
     slash = image.rfind("/")
     colon = image.rfind(":")
     name, tag = (image[:colon], image[colon:]) if colon > slash else (image, "")
-    return {"full": image, "agent": f"{name}-agent{tag}"}
+    return {"full": image, "agent": f"{name}-agent{tag}", "monitor": f"{name}-monitor{tag}"}
 
 
 def write_team(exp: Any, out: Path, *, scenario: str, run_id: str, connect: str, overrides: Sequence[str] = (),
                seed: int | None = None) -> Path:
-    """Write ``out/team.json`` and each agent's slice (``out/team/``) for a team of ``exp``
-    whose processes are clients of the router at ``connect``: what ``rse agent --id I
-    --team out/team.json`` reads (as after ``rse run``). Returns the team file."""
+    """Write ``out/team.json`` and, in ``out/team/``, each agent's slice, the plant's slice
+    (``plant.pkl``) and the built experiment (``experiment.pkl``) for a team of ``exp``
+    whose processes are clients of the router at ``connect``: what ``rse agent --id I``,
+    ``rse plant`` and ``rse monitor`` read with ``--team out/team.json`` (as after ``rse
+    run``). Returns the team file."""
     import json
+    import pickle
 
     from agents.middleware import make_channel, make_nodes
     from agents.net.launcher import Team
     from agents.net.protocol import RunConfig
-    from agents.net.slices import agent_slices, write_slices
+    from agents.net.slices import agent_slices, plant_slice, write_slices
 
     out = Path(out)
     write_slices(out / "team", agent_slices(exp, make_nodes(exp, make_channel(exp))))
+    (out / "team" / "plant.pkl").write_bytes(pickle.dumps(plant_slice(exp), protocol=pickle.HIGHEST_PROTOCOL))
+    (out / "team" / "experiment.pkl").write_bytes(pickle.dumps(exp, protocol=pickle.HIGHEST_PROTOCOL))
     team = Team(run_id, {}, "client", (connect,), scenario, tuple(overrides), seed, RunConfig())
     path = out / "team.json"
     path.write_text(json.dumps(team.as_dict(), indent=1))
@@ -136,7 +146,7 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     Parameters
     ----------
     scenario : Path
-        The scenario file (mounted read-only into every service but the router).
+        The scenario file (mounted read-only into the one-shot service ``team`` only).
     agent_ids : sequence of int
         The scenario's agent ids: one service ``agent-{i}`` each.
     base : Path
@@ -144,11 +154,12 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     run_id : str
         The run id every service is given (one run, one Rerun recording).
     image : str
-        The full image (router and agents run its ``-agent`` sibling: :func:`role_images`).
+        The full image (the service ``team``); the router, the plant and the agents run its
+        ``-agent`` sibling, the monitor its ``-monitor`` sibling (:func:`role_images`).
     secure : Path, optional
         A directory written by ``rse certs``: TLS with one identity per service.
     overrides, seed
-        ``--set KEY=VALUE`` and ``--seed`` passed to every process that reads the scenario.
+        ``--set KEY=VALUE`` and ``--seed`` given to ``team``, which builds the experiment.
 
     Returns
     -------
@@ -158,14 +169,16 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     target = f"{SCENARIO_DIR}/{scenario.name}"
     images = role_images(image)
     scenario_mount = Quoted(f"{_rel(scenario, base)}:{target}:ro")
+    team_mount = Quoted(f"team:{TEAM_DIR}:ro")
     connect = f"tcp/{ROUTER_HOST}:{ROUTER_PORT}"
     options: list[str] = []
     for ov in overrides:
         options += ["--set", _escape(ov)]
     if seed is not None:
         options += ["--seed", str(seed)]
-    common = [target, "--run-id", run_id, "--client", "--connect", connect, *options]
-    after_router = {"router": {"condition": "service_healthy"}}
+    # every process of the team starts from its part of the team directory (no scenario, no design)
+    common = ["--team", f"{TEAM_DIR}/team.json", "--run-id", run_id, "--client", "--connect", connect]
+    after = {"router": {"condition": "service_healthy"}, "team": {"condition": "service_completed_successfully"}}
 
     def role(command: list[str], identity: str, img: str, mounts: list[Any]) -> dict[str, Any]:
         svc: dict[str, Any] = {"image": img, "init": True}
@@ -176,7 +189,8 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
             volumes += secure_mounts(secure, identity, base)
         svc["command"] = Flow(args)
         svc["volumes"] = volumes
-        svc["depends_on"] = dict(after_router)
+        svc["depends_on"] = {k: dict(v) for k, v in after.items()}
+        svc["healthcheck"] = {"test": Flow(HEALTHCHECK), **CLIENT_HEALTH}
         return svc
 
     router_cmd = ["router", "--listen", f"tcp/0.0.0.0:{ROUTER_PORT}"]
@@ -191,20 +205,18 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     router["restart"] = "unless-stopped"
 
     services: dict[str, Any] = {"router": router}
-    # the design once, for every agent: the volume "team" (at /runs here: a directory of the image owned by rse)
+    # the design once, for every process: the volume "team" (at /runs here: a directory of the image owned by rse)
     services["team"] = {"image": images["full"], "init": True,
                         "command": Flow(["compose", target, "--run-id", run_id, "--write-team", RUNS_DIR, *options]),
                         "volumes": [scenario_mount, Quoted(f"team:{RUNS_DIR}")], "restart": "no"}
-    services["plant"] = role(["plant", *common], "plant", images["full"], [scenario_mount])
+    services["plant"] = role(["plant", *common], "plant", images["agent"], [team_mount])
     monitor = role(["monitor", *common, "--out", f"{RUNS_DIR}/{run_id}", "--serve-web",
-                    "--web-port", str(WEB_PORT), "--grpc-port", str(GRPC_PORT)], "monitor", images["full"],
-                   [scenario_mount, Quoted(f"runs:{RUNS_DIR}")])
+                    "--web-port", str(WEB_PORT), "--grpc-port", str(GRPC_PORT)], "monitor", images["monitor"],
+                   [team_mount, Quoted(f"runs:{RUNS_DIR}")])
     monitor["ports"] = [Quoted(f"{WEB_PORT}:{WEB_PORT}"), Quoted(f"{GRPC_PORT}:{GRPC_PORT}")]
     services["monitor"] = monitor
     for i in agent_ids:
-        svc = role(["agent", "--id", str(i), "--team", f"{TEAM_DIR}/team.json", "--run-id", run_id,
-                    "--client", "--connect", connect], f"agent-{i}", images["agent"], [Quoted(f"team:{TEAM_DIR}:ro")])
-        svc["depends_on"]["team"] = {"condition": "service_completed_successfully"}
+        svc = role(["agent", "--id", str(i), *common], f"agent-{i}", images["agent"], [team_mount])
         svc["restart"] = "on-failure"
         services[f"agent-{i}"] = svc
     return {"services": services, "volumes": {"runs": {}, "team": {}}}

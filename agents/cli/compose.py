@@ -25,8 +25,9 @@ _IMAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@-]*\Z")
               help="Where to write the compose file ('-': standard output; host paths are then relative to the "
                    "current directory).")
 @click.option("--image", default=None, metavar="NAME[:TAG]",
-              help="The full image (team, plant, monitor), built from the repository's Dockerfile; the router and "
-                   "the agents run NAME-agent[:TAG], its target agent (default: resilient-state-estimation:latest).")
+              help="The full image (the one-shot design, team), built from the repository's Dockerfile; the "
+                   "router, the plant and the agents run NAME-agent[:TAG], the monitor NAME-monitor[:TAG], its "
+                   "targets agent and monitor (default: resilient-state-estimation:latest).")
 @click.option("--run-id", default=None,
               help="The run id every service is given (one run, one Rerun recording; the monitor writes "
                    "/runs/RUN_ID). Default: the scenario's run name.")
@@ -37,20 +38,21 @@ _IMAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@-]*\Z")
               help="Also add a Dask scheduler (port 8786) and N Dask workers for `rse sweep --cluster "
                    "tcp://HOST:8786` (the image needs the cluster extra).")
 @click.option("--write-team", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
-              help="Instead of a compose file: build the experiment once and write DIR/team.json and each agent's "
-                   "slice (DIR/team/), what `rse agent --id I --team DIR/team.json` reads (the compose file's "
-                   "one-shot service team runs this).")
+              help="Instead of a compose file: build the experiment once and write DIR/team.json, each agent's "
+                   "slice, the plant's and the built experiment (DIR/team/): what `rse agent --id I`, `rse plant` "
+                   "and `rse monitor` read with --team DIR/team.json (the compose file's one-shot service team "
+                   "runs this).")
 @handle_errors
 def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output: str, image: str | None,
             run_id: str | None, secure: Path | None, dask_workers: int, write_team: Path | None) -> None:
     """Write a docker-compose file running SCENARIO as a team of containers.
 
-    Services: router (a Zenoh router, port 7447 published), team (one-shot: the offline
-    design once, each agent's slice in the volume `team`), plant, monitor (the run
-    directory in the volume `runs`, the Rerun web viewer on ports 9090 and 9876) and one
-    agent-I per agent of the scenario, each a client of the router with the same run id;
-    the plant and the monitor read the scenario file mounted read-only, an agent only its
-    slice. Agents restart on failure and rejoin the running team. Then: build the images
+    Services: router (a Zenoh router, port 7447 published), team (one-shot: reads the
+    scenario file mounted read-only, computes the offline design once and writes each
+    process's slice to the volume `team`), plant, monitor (the run directory in the volume
+    `runs`, the Rerun web viewer on ports 9090 and 9876) and one agent-I per agent of the
+    scenario, each a client of the router with the same run id, started from its slice.
+    Agents restart on failure and rejoin the running team. Then: build the images
     (docs/deployment.md) and `docker compose up`.
     """
     from transport.keys import validate_run_id
@@ -92,7 +94,8 @@ def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output
         f"{exp.scenario.run.name}: router, plant, monitor and {len(exp.agent_ids)} agents; run id {run_id}.",
         f"Written by `{cmd}`: regenerate it rather than edit it.",
         ("docker build -t resilient-state-estimation . && docker build --target agent -t "
-         "resilient-state-estimation-agent . && docker compose up   (docs/deployment.md)"),
+         "resilient-state-estimation-agent . && docker build --target monitor -t "
+         "resilient-state-estimation-monitor . && docker compose up   (docs/deployment.md)"),
         f"Rerun web viewer: http://127.0.0.1:{WEB_PORT}/?url=rerun+http://127.0.0.1:{GRPC_PORT}/proxy",
         f"Run directory: the volume 'runs', /runs/{run_id} in the monitor "
         f"(docker compose cp monitor:/runs/{run_id} runs/).",

@@ -307,8 +307,15 @@ def _run_single(spec: Any) -> None:
 @_role_options
 @handle_errors
 def plant(**kw: Any) -> None:
-    """Run the plant of SCENARIO in this process (one member of a team; see `rse run`)."""
-    _run_single(_role_spec("plant", "plant", **kw))
+    """Run the plant of SCENARIO in this process (one member of a team; see `rse run`).
+
+    With --team (and no SCENARIO, --set or --seed) it reads the plant's slice the team
+    directory holds (RUN_DIR/team/plant.pkl): no scenario file, no design."""
+    cached = _cached_experiment(kw, "plant.pkl")
+    spec = _role_spec("plant", "plant", _validate=cached is None, **kw)
+    if cached is not None:
+        spec.experiment = cached
+    _run_single(spec)
 
 
 @click.command()
@@ -389,7 +396,8 @@ def monitor(out: Path | None, save_estimates: bool, rrd: Path | None, no_rerun: 
     without it): `rse monitor --team RUN_DIR/team.json` rejoins it, keeps the rounds
     recorded before and records from the round it joins at; the rounds in between are
     listed in summary.json (unrecorded_rounds). Its recording is then recording-2.rrd (-3,
-    ...) unless --rrd says otherwise.
+    ...) unless --rrd says otherwise. With --team and an --out that holds no earlier record
+    (a team of rse compose) it is the team's first monitor and records from round 0.
 
     With --serve-web it serves the web viewer (every interface: --web-port, default 9090, and
     the gRPC endpoint the page reads, --grpc-port, default 9876), prints the URL and keeps
@@ -407,22 +415,25 @@ def monitor(out: Path | None, save_estimates: bool, rrd: Path | None, no_rerun: 
         rrd = out / f"recording-{n}.rrd"
     dopts = dashboard_options(out, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
     cached = _cached_experiment(kw)
+    # it rejoins where an earlier monitor of the team recorded (a fresh --out: it is the team's first)
+    rejoin = team is not None and any((out / name).exists() for name in ("metrics.partial", "summary.json"))
     spec = _role_spec("monitor", "monitor", out_dir=str(out), save_estimates=save_estimates, dashboard=dopts,
-                      conn=_UrlPrinter() if dopts is not None else None, resume=team is not None,
+                      conn=_UrlPrinter() if dopts is not None else None, resume=rejoin,
                       _validate=cached is None, **kw)
     if cached is not None:
         spec.experiment = cached
     _run_single(spec)
 
 
-def _cached_experiment(kw: dict[str, Any]) -> bytes | None:
-    """The experiment ``rse run`` built for its team (``RUN_DIR/team/experiment.pkl``): a
-    process that rejoins with ``--team`` and no scenario, override or seed of its own
-    starts without the offline design."""
+def _cached_experiment(kw: dict[str, Any], name: str = "experiment.pkl") -> bytes | None:
+    """The experiment ``rse run`` (or ``rse compose --write-team``) built for its team
+    (``RUN_DIR/team/experiment.pkl``; ``plant.pkl``: the plant's slice of it): a process
+    that joins with ``--team`` and no scenario, override or seed of its own starts without
+    the offline design."""
     team = kw.get("team")
     if team is None or kw.get("overrides") or kw.get("seed") is not None or kw.get("scenario") is not None:
         return None
-    path = (team if team.is_dir() else team.parent) / "team" / "experiment.pkl"
+    path = (team if team.is_dir() else team.parent) / "team" / name
     return path.read_bytes() if path.is_file() else None
 
 

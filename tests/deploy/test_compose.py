@@ -105,14 +105,16 @@ def test_one_service_per_process_of_the_team(mitra):
     assert spec["services"]["plant"]["command"][0] == "plant"
     assert spec["services"]["monitor"]["command"][0] == "monitor"
     images = {name: svc["image"] for name, svc in spec["services"].items()}
-    slim = {"router", *(f"agent-{i}" for i in ids)}  # the Dockerfile's target agent
+    slim = {"router", "plant", *(f"agent-{i}" for i in ids)}  # the Dockerfile's target agent
     assert {images[n] for n in slim} == {"resilient-state-estimation-agent:latest"}
-    assert {images[n] for n in set(images) - slim} == {"resilient-state-estimation:latest"}
+    assert images["monitor"] == "resilient-state-estimation-monitor:latest"
+    assert images["team"] == "resilient-state-estimation:latest"  # the offline design: the full image
 
 
-def test_the_design_runs_once_and_each_agent_reads_only_its_slice(mitra):
+def test_the_design_runs_once_and_each_process_reads_only_its_slice(mitra):
     """The one-shot service team writes team.json and the slices to the volume team; the
-    agents wait for it to complete and start from their slice (no scenario, no design)."""
+    plant, the monitor and the agents wait for it to complete and start from their slice
+    (no scenario, no design)."""
     spec, _ = mitra
     team = spec["services"]["team"]
     cmd = team["command"]
@@ -121,25 +123,31 @@ def test_the_design_runs_once_and_each_agent_reads_only_its_slice(mitra):
     assert "team:/runs" in team["volumes"] and team["restart"] == "no"
     assert spec["volumes"] == {"runs": {}, "team": {}}
     for name, svc in spec["services"].items():
-        if not name.startswith("agent-"):
+        if name in ("router", "team"):
             continue
         assert svc["depends_on"] == {"router": {"condition": "service_healthy"},
                                      "team": {"condition": "service_completed_successfully"}}, name
-        assert svc["volumes"] == ["team:/team:ro"], name
+        assert svc["volumes"] == ["team:/team:ro"] + (["runs:/runs"] if name == "monitor" else []), name
         assert flag(svc["command"], "--team") == "/team/team.json"
         assert "--set" not in svc["command"] and not any(a.startswith("/scenario") for a in svc["command"])
 
 
-def test_write_team_writes_what_rse_agent_team_reads(run_rse, tmp_path):
+def test_write_team_writes_what_rse_agent_plant_and_monitor_team_read(run_rse, tmp_path):
     res = compose(run_rse, str(LKS), "--run-id", "lks-9", "--write-team", str(tmp_path / "t"))
     assert res.returncode == 0, res.stderr
     team = json.loads((tmp_path / "t" / "team.json").read_text())
     assert team["run_id"] == "lks-9" and team["transport"] == "client" and team["connect"] == ["tcp/router:7447"]
-    from agents.net.slices import find_slices, read_slices
+    import pickle
+
+    from agents.net.slices import PlantSlice, find_slices, read_slices
 
     for i in agent_ids(LKS):
         data = find_slices(tmp_path / "t" / "team", [i])
         assert data is not None and [s.agent_id for s in read_slices(data)] == [i]
+    plant = pickle.loads((tmp_path / "t" / "team" / "plant.pkl").read_bytes())
+    assert isinstance(plant, PlantSlice) and plant.agent_ids == agent_ids(LKS)
+    exp = pickle.loads((tmp_path / "t" / "team" / "experiment.pkl").read_bytes())
+    assert exp.agent_ids == agent_ids(LKS) and exp.scenario.run.name == "lee_kim_shim"
 
 
 def test_every_process_is_a_client_of_the_router_and_waits_for_it(mitra):
@@ -159,13 +167,15 @@ def test_every_process_is_a_client_of_the_router_and_waits_for_it(mitra):
 
 
 def test_the_scenario_is_mounted_read_only_and_read_from_the_mount(mitra):
+    """Only the service team, which builds the experiment, reads the scenario file."""
     spec, path = mitra
     for name, svc in spec["services"].items():
         if name == "router":
             assert "volumes" not in svc  # plain: the router reads no file
             continue
-        if name.startswith("agent-"):
+        if name != "team":
             assert not [v for v in svc["volumes"] if v.split(":")[1].startswith("/scenario")], name  # its slice only
+            assert not any(a.startswith("/scenario") for a in svc["command"]), name
             continue
         mounts = [v for v in svc["volumes"] if v.split(":")[1] == "/scenario/mitra_cells.toml"]
         assert len(mounts) == 1, name
@@ -218,9 +228,10 @@ def test_overrides_and_seed_reach_every_process_and_dollars_survive_interpolatio
     text = (tmp_path / "c.yml").read_text()
     spec = yaml.safe_load(text)
     for name, svc in spec["services"].items():
-        slim = name == "router" or name.startswith("agent-")
-        assert svc["image"] == ("registry.example/rse-agent:1.0" if slim else "registry.example/rse:1.0")
-        if slim:  # an agent reads its slice, built with the overrides by the service team
+        want = {"team": "registry.example/rse:1.0", "monitor": "registry.example/rse-monitor:1.0"}
+        assert svc["image"] == want.get(name, "registry.example/rse-agent:1.0"), name
+        if name != "team":  # the others read their slices, built with the overrides by the service team
+            assert "--set" not in svc["command"] and "--seed" not in svc["command"], name
             continue
         cmd = svc["command"]
         sets = [cmd[i + 1] for i, a in enumerate(cmd) if a == "--set"]
@@ -327,8 +338,8 @@ def test_docker_compose_config_accepts_the_file(which, secure):
                           cwd=path.parent)
     resolved = yaml.safe_load(full.stdout)
     assert set(resolved["services"]) == set(load(path)["services"])
-    plant_mounts = resolved["services"]["plant"]["volumes"]
-    src = plant_mounts[0]["source"] if isinstance(plant_mounts[0], dict) else plant_mounts[0].split(":")[0]
+    team_mounts = resolved["services"]["team"]["volumes"]  # the one service that reads the scenario
+    src = team_mounts[0]["source"] if isinstance(team_mounts[0], dict) else team_mounts[0].split(":")[0]
     assert Path(src).resolve() == MITRA.resolve()  # the relative path resolves to the scenario
 
 
@@ -404,7 +415,8 @@ def test_dockerfile_role_images_install_requirements_of_pyproject():
 
     agent, monitor = installed("agent-deps"), installed("monitor-deps")
     assert {re.split(r"[<>=!~]", r)[0] for r in agent} == {"numpy", "eclipse-zenoh", "msgpack", "click", "rich", "psutil"}
-    assert {re.split(r"[<>=!~]", r)[0] for r in monitor} == {"rerun-sdk", "pyarrow"}
+    # pydantic: the built experiment the monitor reads holds the validated scenario
+    assert {re.split(r"[<>=!~]", r)[0] for r in monitor} == {"rerun-sdk", "pyarrow", "pydantic"}
     for r in agent + monitor:
         assert r in known, f"Dockerfile requirement {r} is not one of pyproject.toml's"
 
