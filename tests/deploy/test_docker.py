@@ -150,7 +150,7 @@ def read_run(run: dk.ComposeRun, run_id: str, dest: Path, timeout: float = 120) 
     target = f"/runs/{run_id}"
     run.wait(lambda: dk.docker("exec", run.container("monitor"), "test", "-f", f"{target}/summary.json",
                                check=False).returncode == 0, timeout, "the monitor's summary.json")
-    time.sleep(0.5)  # the file is written last, by rename; the rest is complete
+    # summary.json is written last, by rename: once it is there the run directory is complete
     return run.copy_out("monitor", target, dest)
 
 
