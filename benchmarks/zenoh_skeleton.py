@@ -72,10 +72,11 @@ def sizes_for(exp: Any) -> Sizes:
     est = len(encode(Message(kind="est", sender=ids[0], stamp=123456, arrays={"x": x})))
     done = tuple(len(encode(Message(kind="done", sender=ids[i], stamp=123456, arrays={"x": x, "to": np.ones(len(outs[i]))})))
                  for i in range(exp.N))
+    from agents.middleware import byzantine_strategy
     from agents.net.view import reads_view, view_topology
 
     addressed = tuple(tuple(outs[i]) if i in exp.byzantine_specs else () for i in range(exp.N))
-    needed = tuple(tuple(view_topology(exp, ids[i], {}).needed) if reads_view(exp.byzantine_specs.get(i)) else ()
+    needed = tuple(tuple(view_topology(exp, ids[i], {}).needed) if reads_view(byzantine_strategy(exp, i)) else ()
                    for i in range(exp.N))
     return Sizes(tuple(ids), tuple(ins), meas, truth, est, done, addressed, needed)
 

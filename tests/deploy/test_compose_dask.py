@@ -25,7 +25,7 @@ def test_dask_workers_adds_a_scheduler_and_n_single_threaded_workers(run_rse, tm
     assert worker["deploy"]["replicas"] == 3 and worker["depends_on"] == ["dask-scheduler"]
     assert worker["environment"]["OPENBLAS_NUM_THREADS"] == "1"
     assert "volumes" not in worker  # tasks carry their scenario: workers mount nothing
-    assert sched["image"] == worker["image"] == services["plant"]["image"]  # the full image (cluster extra)
+    assert sched["image"] == worker["image"] == services["team"]["image"]  # the full image (cluster extra), as the team service
     # the team's services are unchanged
     plain = tmp_path / "plain.yml"
     assert run_rse("compose", str(MITRA), "-o", str(plain)).returncode == 0
