@@ -93,8 +93,8 @@ class AgentProcess(Role):
         if role == "plant":
             if alive:
                 self.plant_seen_at = time.monotonic()
-            elif self.stop is None:  # its stop message may still come (see run)
-                log.debug("agent %d: the plant's token went away", self.id)
+            elif self.stop is None:
+                log.warning("agent %d: the plant left", self.id)
 
     def handle_data(self, key: str, payload: bytes) -> None:
         if key == self._loc_key:
