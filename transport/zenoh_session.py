@@ -226,8 +226,7 @@ def make_config(
 
     Sets ``mode``, ``listen/endpoints``, ``connect/endpoints`` and
     ``scouting/multicast/enabled`` (the keys of Zenoh's ``DEFAULT_CONFIG.json5``),
-    ``scouting/gossip/enabled`` when ``gossip`` is off, ``connect/retry`` with ``retry_ms`` (and, for a peer, ``open/return_conditions/connect_scouted``
-    off: the session opens without waiting for those endpoints),
+    ``scouting/gossip/enabled`` when ``gossip`` is off, ``connect/retry`` with ``retry_ms``,
     the link buffers of ``small_links``, and
     with ``tls`` (a :class:`transport.secure.TlsFiles`) the ``transport/link/tls`` keys of
     mutual TLS (:func:`transport.secure.tls_settings`); everything else keeps Zenoh's defaults. Values are written with ``json.dumps`` (JSON
@@ -248,11 +247,6 @@ def make_config(
         if retry_ms is not None:
             conf.insert_json5("connect/retry", json.dumps({"period_init_ms": int(retry_ms), "period_max_ms": 1000,
                                                            "period_increase_factor": 1.5}))
-            if mode == "peer":
-                # open at once and connect in the background: Zenoh otherwise waits about
-                # 0.5 s in open for a connect endpoint that is not listening yet (a team's
-                # processes start together; each waits for the others' tokens anyway)
-                conf.insert_json5("open/return_conditions/connect_scouted", "false")
         if small_links:
             conf.insert_json5("transport/unicast/qos/enabled", "false")
             conf.insert_json5("transport/link/tx/batch_size", json.dumps(SMALL_BATCH))

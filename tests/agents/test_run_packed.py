@@ -106,37 +106,6 @@ def test_a_64_agent_team_packed_equals_the_simulator(procs, tmp_path):
     _compare_estimates(out, ov)
 
 
-@pytest.mark.slow
-@pytest.mark.multiprocess
-def test_a_64_agent_team_one_per_process_equals_the_simulator(procs, tmp_path):
-    """mitra_cells.toml with K = 16 cells (64 agents), 100 lockstep rounds as 66 processes
-    (one per agent; `rse bench run ... --set plant.params.K=16` prints its figures)."""
-    ov = ("plant.params.K=16", "run.rounds=100", "expect=[]")
-    out = tmp_path / "r"
-    p = procs.start(_cmd("run", str(MITRA), *[x for o in ov for x in ("--set", o)], "--out", str(out),
-                         "--save-estimates", "--no-progress", "--no-rerun", "--deadline", "60", "--startup-timeout", "600"))
-    so, se = p.communicate(timeout=1200)
-    assert p.returncode == 0, se
-    assert len(json.loads((out / "team.json").read_text())["endpoints"]) == 66
-    _compare_estimates(out, ov)
-
-
-@pytest.mark.slow
-@pytest.mark.multiprocess
-def test_a_256_agent_team_packed_equals_the_simulator(procs, tmp_path):
-    """mitra_cells.toml with K = 64 cells (256 agents, n = 1280), 50 lockstep rounds, 64
-    agents per process (4 agent processes)."""
-    ov = ("plant.params.K=64", "run.rounds=50", "expect=[]")
-    out = tmp_path / "r"
-    p = procs.start(_cmd("run", str(MITRA), *[x for o in ov for x in ("--set", o)], "--agents-per-process", "64",
-                         "--out", str(out), "--save-estimates", "--no-progress", "--no-rerun", "--deadline", "60",
-                         "--startup-timeout", "600"))
-    so, se = p.communicate(timeout=1800)
-    assert p.returncode == 0, se
-    assert len(json.loads((out / "team.json").read_text())["endpoints"]) == 6
-    _compare_estimates(out, ov)
-
-
 def _compare_estimates(out, ov):
     import numpy as np
 
