@@ -52,10 +52,6 @@ class AgentProcess(Role):
         self.member = False
         self.meas: dict[int, tuple[np.ndarray | None, np.ndarray, float]] = {}
         self.arrived: dict[int, set[int]] = {}
-        #: lockstep: round -> in-neighbour -> the stamps of the messages its done report of
-        #: that round says it sent to this agent
-        self.reports: dict[int, dict[int, tuple[int, ...]]] = {}
-        self._in_set = frozenset(part.in_ids)
         self.last = -1
         self.stop: tuple[int, np.ndarray, float] | None = None
         self.finished = asyncio.Event()
@@ -133,7 +129,7 @@ class AgentProcess(Role):
             self._handle_view(key, payload)
             return
         if "/ctl/done/" in key:
-            self._done_report(key, payload)
+            self._merged_done(key, payload)
             return
         got = self.decode(key, payload, self.est_schema)
         if got is None:
@@ -145,32 +141,28 @@ class AgentProcess(Role):
             return
         self._take(j, m.stamp, m.arrays["x"])
 
-    def _done_report(self, key: str, payload: bytes) -> tuple[int, int, np.ndarray, list[int], list[int]] | None:
-        """Lockstep: the done report of an in-neighbour (or of an agent whose report carries
-        its estimate, :attr:`~agents.net.slices.AgentSlice.merged`). Noted for the wait
-        lists; a merged report is handed to the node as its estimate message when it names
-        this agent among its receivers. Returns ``(sender, stamp, x, receivers, stamps)``
-        of a valid report."""
+    def _merged_done(self, key: str, payload: bytes) -> tuple[int, int, np.ndarray, list[int]] | None:
+        """The done report of an in-neighbour whose report carries its estimate (see
+        :attr:`~agents.net.slices.AgentSlice.merged`): handed to the node as its estimate
+        message when it names this agent among its receivers. Returns ``(sender, stamp, x,
+        receivers)`` of a valid report."""
         got = self.decode(key, payload, self.wire.done)
         if got is None:
             return None
         p, m = got
         j = p.sender
         to, stamps = m.arrays["to"], m.arrays["stamps"]
-        if (not (j in self.part.merged or j in self._in_set) or stamps.size != to.size or to.size > self.part.N
+        if (j not in self.part.merged or stamps.size != to.size or to.size > self.part.N
                 or not all(float(v).is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
             self.rejects.add(j, "range")
             return None
-        receivers, sent = [int(t) for t in to], [int(v) for v in stamps]
-        mine = tuple(st for r, st in zip(receivers, sent) if r == self.id)
-        if mine and j in self.part.merged:
+        receivers = [int(t) for t in to]
+        if self.id in receivers:
             if j not in self.node.links:
                 self.rejects.add(j, "neighbour")
             else:
-                self._take(j, mine[0], m.arrays["x"])
-        if j in self._in_set and m.stamp >= self.last - 2 and len(self.reports) < 4096:
-            self.reports.setdefault(m.stamp, {})[j] = mine
-        return j, m.stamp, m.arrays["x"], receivers, sent
+                self._take(j, int(stamps[receivers.index(self.id)]), m.arrays["x"])
+        return j, m.stamp, m.arrays["x"], receivers
 
     def _take(self, j: int, stamp: int, x: np.ndarray) -> None:
         """Hand a decoded estimate of in-neighbour ``j`` to the node (its channel decides)
@@ -187,13 +179,13 @@ class AgentProcess(Role):
         except MessageError:
             self.rejects.add(None, "key")
             return
-        if p.kind == "ctl" and self._merge_in and (p.sender in self.part.merged or p.sender in self._in_set):
-            got = self._done_report(key, payload)  # a merged one is an estimate too: for my inbox and the view
+        if p.kind == "ctl" and p.sender in self.part.merged and self._merge_in:
+            got = self._merged_done(key, payload)  # an estimate too: for my inbox and for the view
             if got is not None:
-                j, stamp, x, receivers, sent = got
-                if j in self.part.merged and receivers and self.view.wants(j, None):
+                j, stamp, x, receivers = got
+                if receivers and self.view.wants(j, None):
                     self.view.add(j, None, stamp, x)
-                self.view.add_done(j, stamp, list(zip(receivers, sent)))
+                self.view.add_done(j, stamp, [(r, stamp) for r in receivers])
             return
         if p.kind == "ctl":
             try:
@@ -246,21 +238,8 @@ class AgentProcess(Role):
         return True
 
     def _arrived_all(self, wait: np.ndarray) -> bool:
-        """Whether, for each ``(j, r)`` of a wait list, in-neighbour ``j``'s done report of
-        round ``r`` and every message it names for this agent arrived (an agent whose token
-        went away is not waited for)."""
-        arrived, reports, alive = self.arrived, self.reports, self.alive
-        for j, r in wait.tolist():
-            j = int(j)
-            rep = reports.get(int(r), {}).get(j)
-            if rep is None:
-                if ("agent", j) in alive:
-                    return False
-                continue
-            for st in rep:
-                if j not in arrived.get(st, ()):
-                    return False
-        return True
+        arrived = self.arrived
+        return all(int(j) in arrived.get(int(s), ()) for j, s in wait)
 
     def _tick_at(self, when: float) -> None:
         if self._timer is not None:
@@ -334,8 +313,6 @@ class AgentProcess(Role):
             self.rounds_run += 1
             for s in [s for s in self.arrived if s < k - 2]:
                 del self.arrived[s]
-            for s in [s for s in self.reports if s < k - 1]:
-                del self.reports[s]
             if self.view is not None and lockstep and k >= self.silent_until:
                 self._held = (k, out, now)
                 if not self._release_held(now):
@@ -378,20 +355,19 @@ class AgentProcess(Role):
     async def run(self) -> dict[str, Any]:
         keys, bus, cfg = self.keys, self.bus, self.cfg
         bus.subscribe(self._loc_key, self.queue)
-        # lockstep: every in-neighbour's done report (the wait lists; a merged one is its estimate)
-        reports_of = list(self.in_ids) if self._merge_in else []
+        merged_ins = [j for j in self.in_ids if j in self.part.merged] if self._merge_in else []
         if self.view is None:
             for j in self.in_ids:
                 bus.subscribe(keys.est(j), self.queue)
             bus.subscribe(keys.est_pattern(to=self.id), self.queue)
-            for j in reports_of:
+            for j in merged_ins:  # their estimates come in their done reports
                 bus.subscribe(keys.ctl("done", j), self.queue)
         else:  # also the estimates its receivers will use, and the reports it waits for
             for j in sorted(set(self.in_ids) | set(self.view.needed)):
                 bus.subscribe(keys.est(j), self.queue)
             for j in sorted({self.id} | self.view.out_set):
                 bus.subscribe(keys.est_pattern(to=j), self.queue)
-            for s in sorted(set(self.view.needed) | set(reports_of)):
+            for s in sorted(set(self.view.needed) | set(merged_ins)):
                 bus.subscribe(keys.ctl("done", s), self.queue)
         bus.watch(keys.alive_pattern(), self.queue)
         bus.announce(keys.alive("agent", self.id))

@@ -17,7 +17,7 @@ from transport.codec import MONITOR_ID, PLANT_ID
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import AHEAD, MAX_AHEAD, Role, RunConfig, _msg
+from .protocol import MAX_AHEAD, Role, RunConfig, _msg
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -35,14 +35,12 @@ class PlantProcess(Role):
         self.plant = PlantRole(exp)
         self.ready: set[int] = set()  # agents that asked to join
         self.members: set[int] = set()
-        self.done: dict[int, set[int]] = {}  # round -> the agents that reported it done
-        self.members_at: dict[int, frozenset[int]] = {}  # round -> the members it was published to
+        self.done: dict[int, dict[int, list[tuple[int, int]]]] = {}  # round -> agent -> (receiver, stamp)
         self.monitor_ack = -1
         self.k = 0  # the round being run
         self.missed: Counter[int] = Counter()
         out_ids = {aid: {exp.agent_ids[j] for j in exp.out_neighbours(i)} for i, aid in enumerate(exp.agent_ids)}
         self.out_ids = out_ids
-        self.in_ids = {aid: sorted(j for j, outs in out_ids.items() if aid in outs) for aid in exp.agent_ids}
 
     def on_alive(self, role: str, i: int, alive: bool) -> None:
         if role == "monitor":
@@ -71,7 +69,7 @@ class PlantProcess(Role):
                 return
             rnd = self.done.get(m.stamp)
             if rnd is not None:
-                rnd.add(p.sender)
+                rnd[p.sender] = [(int(t), int(s)) for t, s in zip(tl, sl)]
         elif "/ctl/ready/" in key:
             got = self.decode(key, payload, self.wire.ctl)
             if got is not None and got[0].sender in self.ids:
@@ -83,29 +81,14 @@ class PlantProcess(Role):
         else:
             self.rejects.add(None, "key")
 
-    def _wait_lists(self, k: int) -> dict[int, np.ndarray]:
-        """Per receiver, the ``(in-neighbour, k)`` pairs of its in-neighbours that were
-        members in round ``k``: the agent waits for their round-``k`` done reports (and the
-        messages these say were sent to it), or for their tokens to go away."""
-        members = self.members_at.get(k, frozenset())
-        return {r: np.array([(j, k) for j in ins if j in members], dtype=float).reshape(-1, 2)
-                for r, ins in self.in_ids.items()}
-
-    async def _await_done(self, r: int, deadline: float) -> None:
-        """Lockstep: wait until every member of round ``r`` still in the team reported it
-        done, or ``deadline`` seconds passed (the late ones are counted)."""
-        rnd = self.done.get(r)
-        expected = self.members_at.get(r)
-        if rnd is None or not expected:
-            return
-        finished = await self.wait_for(lambda: all(a in rnd or a not in self.members for a in expected), deadline)
-        if not finished:
-            late = sorted(a for a in expected if a not in rnd and a in self.members)
-            for a in late:
-                self.missed[a] += 1
-                if self.missed[a] in (1, 10, 100, 1000):
-                    log.warning("plant: agent %d missed the %g s deadline in round %d (%d time(s))",
-                                a, deadline, r, self.missed[a])
+    def _wait_lists(self, prev: dict[int, list[tuple[int, int]]]) -> dict[int, np.ndarray]:
+        """Per receiver, the (sender, stamp) pairs of the messages sent to it last round."""
+        lists: dict[int, list[tuple[int, int]]] = {aid: [] for aid in self.exp.agent_ids}
+        for sender, to in prev.items():
+            for r, stamp in to:
+                if r in lists:
+                    lists[r].append((sender, stamp))
+        return {r: np.array(sorted(v), dtype=float).reshape(-1, 2) for r, v in lists.items()}
 
     async def run(self) -> dict[str, Any]:
         exp, keys, bus, cfg = self.exp, self.keys, self.bus, self.cfg
@@ -128,15 +111,6 @@ class PlantProcess(Role):
         finally:
             consumer.cancel()
 
-    async def _monitor_wait(self, k: int) -> None:
-        """The monitor only records: without it the team goes on (and a monitor that
-        rejoins is waited for as it catches up)."""
-        monitor = ("monitor", 0)
-        if monitor in self.alive and k - self.monitor_ack > MAX_AHEAD:
-            if not await self.wait_for(lambda: k - self.monitor_ack <= MAX_AHEAD // 2 or monitor not in self.alive,
-                                       self.cfg.startup_timeout):
-                raise TransportError(f"the monitor stopped acknowledging rounds (last {self.monitor_ack})")
-
     async def _rounds(self) -> dict[str, Any]:
         exp, keys, bus, cfg, plant = self.exp, self.keys, self.bus, self.cfg, self.plant
         K = exp.n_rounds
@@ -146,26 +120,21 @@ class PlantProcess(Role):
         period = 1.0 / cfg.rate if cfg.rate else None
         loc_keys = {aid: keys.plant_loc(aid) for aid in ids}
         truth_key = keys.plant_truth()
+        prev: dict[int, list[tuple[int, int]]] = {}
         empty = np.zeros(0)
         nowait = np.zeros((0, 2))
         t0 = time.monotonic()
         round0_at = time.time()  # wall clock: start-up figures (command to round 0)
         for k in range(K + 1):
             self.k = k
-            if lockstep and k >= AHEAD:
-                # no barrier per round: round k goes out once the team finished round
-                # k - AHEAD (the agents pace themselves on their in-neighbours' reports)
-                await self._await_done(k - AHEAD, cfg.deadline)
-                await self._monitor_wait(k)
             joined = (self.ready & {a for (r, a) in self.alive if r == "agent"}) - self.members
             if joined:
                 self.members |= joined
                 log.info("plant: agent(s) %s joined at round %d", ", ".join(map(str, sorted(joined))), k)
-            self.done[k] = set()
-            self.members_at[k] = frozenset(self.members)
+            self.done[k] = {}
             y = plant.measure(k)
             bus.publish(truth_key, _msg("truth", PLANT_ID, k, {"x": plant.x}))
-            waits = self._wait_lists(k - 1) if lockstep else {}
+            waits = self._wait_lists(prev) if lockstep else {}
             # realtime: a measurement an agent cannot take now is dropped for it alone
             # (an unreachable agent must not hold up the others' measurements)
             for i, aid in enumerate(ids):
@@ -174,21 +143,36 @@ class PlantProcess(Role):
                 member = aid in self.members
                 bus.publish(loc_keys[aid], _msg("meas", PLANT_ID, k, {"y": meas, "wait": waits.get(aid, nowait) if member else nowait},
                                                 meta={"member": member, "nomeas": rows is None}), droppable=not lockstep)
+            if lockstep:
+                expected = set(self.members)
+                rnd = self.done[k]
+                finished = await self.wait_for(lambda rnd=rnd, expected=expected: all(a in rnd or a not in self.members for a in expected),
+                                               cfg.deadline)
+                if not finished:
+                    late = sorted(a for a in expected if a not in rnd and a in self.members)
+                    for a in late:
+                        self.missed[a] += 1
+                        if self.missed[a] in (1, 10, 100, 1000):
+                            log.warning("plant: agent %d missed the %g s deadline in round %d (%d time(s))",
+                                        a, cfg.deadline, k, self.missed[a])
+                # the monitor only records: without it the team goes on (and a monitor that
+                # rejoins is waited for as it catches up)
+                monitor = ("monitor", 0)
+                if monitor in self.alive and k - self.monitor_ack > MAX_AHEAD:
+                    if not await self.wait_for(lambda k=k, monitor=monitor: k - self.monitor_ack <= MAX_AHEAD // 2 or monitor not in self.alive,
+                                               cfg.startup_timeout):
+                        raise TransportError(f"the monitor stopped acknowledging rounds (last {self.monitor_ack})")
             if period is not None:
                 delay = t0 + (k + 1) * period - time.monotonic()
                 if delay > 0:
                     await asyncio.sleep(delay)
-            for old in [r for r in self.done if r < k - AHEAD]:
-                self.done.pop(old, None)
-                self.members_at.pop(old, None)
+            prev = self.done[k]
+            self.done.pop(k - 1, None)
             if k < K:
                 plant.advance(k)
-        if lockstep:  # the last rounds
-            for r in range(max(0, K - AHEAD + 1), K + 1):
-                await self._await_done(r, cfg.deadline)
         elapsed = time.monotonic() - t0
         # the end: final wait lists (messages stamped K), then stop
-        waits = self._wait_lists(K) if lockstep else {}
+        waits = self._wait_lists(self.done.get(K, {})) if lockstep else {}
         self.send_stats(PLANT_ID, elapsed=elapsed, rounds=K + 1, missed=int(sum(self.missed.values())),
                         round0_at=round0_at)
         for aid in ids:

@@ -15,8 +15,8 @@ The round protocol (keys from :class:`transport.keys.Keys`)::
     agent i -> rse/{run}/agent/{i}/est      "est"   payload stamped k (broadcast)
             or rse/{run}/agent/{i}/est/{j}  "est"   addressed payloads (Byzantine)
     agent i -> rse/{run}/ctl/done/{i}       "done"  own estimate x_i[k], receivers  (plant, monitor;
-                                            in lockstep, i's out-neighbours; when i's payload is
-                                            its estimate, this is that message: no "est")
+                                            and, in lockstep, i's out-neighbours when i's payload
+                                            is its estimate: then i sends no "est")
     agent i -> rse/{run}/ctl/ready/{i}      joining the team                    (plant)
     monitor -> rse/{run}/ctl/ack/monitor    rounds recorded (flow control)      (plant)
     plant   -> rse/{run}/plant/loc/{i}      "ctl" cmd=stop, wait list           (agent i)
@@ -24,18 +24,13 @@ The round protocol (keys from :class:`transport.keys.Keys`)::
     every   -> rse/{run}/ctl/stats/{who}    link and rejection counters, RSS    (monitor)
     every   -> rse/{run}/alive/{role}/{i}   liveliness token
 
-**Lockstep** (no barrier per round through the plant): the plant publishes round ``k``
-once every member agent reported round ``k - AHEAD`` done (or the deadline passed; a
-member whose token went away is not waited for), so it runs at most :data:`AHEAD` rounds
-ahead of the slowest agent. The meas message of round ``k`` to agent ``i`` lists, as
-``(j, k - 1)`` pairs, the in-neighbours ``j`` that were members in round ``k - 1``; agent
-``i`` subscribes to its in-neighbours' done reports (which name the receivers and stamps
-of the messages sent that round) and runs round ``k`` once, for each listed ``j``, the
-report arrived and so did every message it says was sent to ``i`` (or ``j``'s token went
-away, or the deadline passed). So every message reaches ``AgentNode.receive`` before the
-round in which the channel model makes it visible, and the estimates equal
-``rse simulate``'s, while an agent waits only for its in-neighbours, not for the whole
-team. **Realtime**: the plant ticks at ``rate`` Hz on
+**Lockstep**: the plant publishes round ``k`` once every member agent reported round
+``k - 1`` done (or the deadline passed; a member whose token went away is not waited
+for). The meas message to agent ``i`` lists the in-neighbours whose round ``k - 1``
+messages were sent to ``i`` (from their done reports); the agent runs round ``k`` when
+all of them have physically arrived (or the deadline passed), so every message reaches
+``AgentNode.receive`` before the round in which the channel model makes it visible, and
+the estimates equal ``rse simulate``'s. **Realtime**: the plant ticks at ``rate`` Hz on
 the wall clock, agents run a round as soon as its measurement arrives, with whatever
 has arrived (late messages are placed by their stamps).
 
@@ -78,9 +73,6 @@ QUEUE_SIZE = 1 << 16
 MONITOR_LAG = 128  # the monitor closes round k once truth k + LAG arrived
 ACK_EVERY = 32
 MAX_AHEAD = 512  # lockstep: the plant waits when the monitor is this many rounds behind
-#: lockstep: the plant publishes round k once every member reported round k - AHEAD done
-#: (1 would be a barrier per round; the agents pace themselves on their in-neighbours)
-AHEAD = 4
 UNKNOWN = MIN_ID  # sender code of a message whose key names no sender
 REASONS = ("size", "decode", "type", "keys", "version", "sender", "shape", "nonfinite", "key", "range", "neighbour",
            "invalid")
