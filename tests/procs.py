@@ -3,6 +3,7 @@ all killed (SIGKILL to the group) at the end of a test whatever happened."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -10,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 from tests.conftest import ROOT
 
@@ -64,3 +66,15 @@ class Procs:
                 p.communicate(timeout=5)
             except Exception:
                 pass
+
+
+def wait_json(path: Path, timeout: float) -> dict:
+    """The JSON in ``path`` once it is there and whole (a writer may still be writing it);
+    an AssertionError after ``timeout`` seconds (only a hang reaches it)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError):
+            time.sleep(0.05)
+    raise AssertionError(f"{path} did not appear within {timeout} s")

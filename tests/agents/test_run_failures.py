@@ -24,22 +24,13 @@ import pytest
 
 from tests.conftest import SCENARIOS
 from tests.procs import rse_cmd
+from tests.procs import wait_json as _wait_file
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
 LKS = SCENARIOS / "lee_kim_shim.toml"
 RUN = ("--set", "run.dt=0.01", "--set", "run.duration=41", "--set", "output.window=[40.0, 41.0]",
        "--rate", "100", "--no-progress", "--no-rerun")
-
-
-def _wait_file(path: Path, timeout: float) -> dict:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        try:
-            return json.loads(path.read_text())
-        except (OSError, ValueError):
-            time.sleep(0.05)
-    raise AssertionError(f"{path} did not appear within {timeout} s")
 
 
 class Status:

@@ -22,6 +22,7 @@ from agents.api import load_experiment
 from agents.simulate import simulate
 from tests.conftest import SCENARIOS
 from tests.procs import child_env, rse_cmd
+from tests.procs import wait_json as _wait_file
 
 pytestmark = pytest.mark.multiprocess
 
@@ -32,16 +33,6 @@ SHORT = ("--set", "run.dt=0.01", "--set", "run.duration=12", "--set", "output.wi
 
 
 _cmd, _env = rse_cmd, child_env  # the procs fixture (tests/conftest.py) kills what they start
-
-
-def _wait_file(path: Path, timeout: float) -> dict:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        try:
-            return json.loads(path.read_text())
-        except (OSError, ValueError):
-            time.sleep(0.05)
-    raise AssertionError(f"{path} did not appear within {timeout} s")
 
 
 def _compare(out: Path, scenario: Path, overrides: tuple[str, ...], sim_dir: Path) -> None:
