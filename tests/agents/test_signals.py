@@ -320,8 +320,8 @@ def test_single_roles_in_a_running_team(tmp_path):
         agent = Proc(rse_cmd("agent", "--id", "3", "--team", str(d / "team.json"), "--verbose"))
         mon = Proc(rse_cmd("monitor", "--team", str(d / "team.json"), "--no-rerun", "--verbose"))
         try:
-            assert mon.wait_line("rejoined the team at round", 120), mon.text
-            assert agent.wait_line("joined", 120), agent.text
+            assert mon.wait_line("rejoined the team at round", 120), (mon.text, agent.text, team_proc.text)
+            assert agent.wait_line("joined", 120), (agent.text, team_proc.text)
             t_agent = interrupt(agent, signal.SIGTERM)
             t_mon = interrupt(mon, signal.SIGINT)
         finally:
