@@ -379,28 +379,45 @@ class FlowStack:
         self._Ys = np.stack([f._Ys for f in fl])
         self._bound = np.array([f.bound for f in fl])
         self._I = fl[0]._I
+        self._D: np.ndarray | None = None  # the stacked deviations after the last stacked step
+        self._rows: list[np.ndarray] = []  # ... each flow's Delta (a row of it) while it is untouched
+
+    @property
+    def deviations(self) -> np.ndarray:
+        """``(F, m, m)``: every flow's ``Delta`` (the stacked array of the last step while
+        each flow's ``Delta`` is still its row; read-only use)."""
+        D = self._D
+        if D is None or any(f._Delta is not d for f, d in zip(self.flows, self._rows)):
+            D = self._D = np.stack([f._Delta for f in self.flows])
+            self._rows = list(D)
+            for f, d in zip(self.flows, self._rows):
+                f._Delta = d
+        return D
 
     def step(self) -> None:
         fl = self.flows
-        Delta = np.stack([f._Delta for f in fl])
+        Delta = self.deviations
         Amat = self._I + Delta @ self._G
         X = np.linalg.solve(Amat, Delta)
         sign, _ = np.linalg.slogdet(Amat)
-        ok = bool(np.all(sign > 0)) and bool(np.all(np.isfinite(X)))
+        ok = bool((sign > 0).all()) and bool(np.isfinite(X).all())
         if ok:
             D = self._E @ X @ self._Et
             Dn = 0.5 * (D + D.transpose(0, 2, 1))
             Y = self._Ys + Dn
-            ok = bool(np.all(np.isfinite(Y))) and bool(np.all(np.trace(Y, axis1=1, axis2=2) <= self._bound))
+            ok = bool(np.isfinite(Y).all()) and bool((np.trace(Y, axis1=1, axis2=2) <= self._bound).all())
             if ok:
                 try:
                     np.linalg.cholesky(Y)
                 except np.linalg.LinAlgError:
                     ok = False
         if not ok:
+            self._D = None
             for f in fl:
                 f.step()
             return
-        for f, d in zip(fl, Dn):
+        self._D = Dn
+        self._rows = list(Dn)
+        for f, d in zip(fl, self._rows):
             f._Delta = d
             f._t = f._t + f.dt

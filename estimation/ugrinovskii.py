@@ -321,6 +321,26 @@ class _NodeBase(Batchable):
     def _after_step(self) -> None:
         """Called at the end of every :meth:`step` (the runtime updates its attack flag)."""
 
+    # -- what a batch (estimation.ugrinovskii_batch) may do for all members at once ------------
+    def _plain_inputs(self) -> bool:
+        """Whether :meth:`_inputs` is this module's (a batch may then build every member's
+        inputs from the stacked states; a runtime that adds to them says False)."""
+        return True
+
+    @classmethod
+    def _after_steps(cls, members: "list[_NodeBase]", indicators: np.ndarray) -> None:
+        """:meth:`_after_step` of every member of a batch after a stacked step;
+        ``indicators``: their :attr:`attack_indicator` ``u`` (19) as rows ``(M, nf)``."""
+        for m in members:
+            m._after_step()
+
+    @classmethod
+    def _diagnostic_rows(cls, members: "list[_NodeBase]",
+                         indicators: np.ndarray | None) -> tuple[dict[str, np.ndarray], np.ndarray | None] | None:
+        """Every member's diagnostics and attack flag as rows from their indicators
+        ``(M, nf)`` (a runtime's; None: not offered; ``indicators`` None: only whether)."""
+        return None
+
 
 class UgrinovskiiNode(_NodeBase):
     """Controlled observer (8) with the attack detector / compensator (17)-(19) at one node.
