@@ -359,39 +359,54 @@ class RiccatiFlow:
 
 
 class FlowStack:
-    """Several :class:`RiccatiFlow` of one size stepped together (the batched round).
+    """Several :class:`RiccatiFlow` stepped together (the batched round).
 
     :meth:`step` is :meth:`RiccatiFlow.step` of every flow, stacked: ``X = (I + Delta G)^-1
     Delta`` by one batched solve, the escape test on the sign of ``det(I + Delta G)``,
     ``Delta+ = sym(E X E^T)`` and the checks of :func:`check_riccati_solution` (Cholesky,
     trace bound) for all of them; each flow's ``Delta`` and time are updated. Where any flow
     fails a test, every flow takes its own :meth:`~RiccatiFlow.step` instead, which raises
-    the per-flow error. The batched LAPACK calls may round differently from the per-flow
-    ones: equal within 1e-12 relative (bit-identical on the reference machine).
+    the per-flow error. Flows of different sizes ``m`` are stacked at the largest size ``m_max``:
+    ``Delta``, ``G``, ``E`` padded with zeros and ``Y_s`` with the identity (so the padded
+    block of ``I + Delta G`` is ``I``, of ``Delta`` stays 0 and of ``Y`` is ``I``: the
+    determinant's sign and the Cholesky test are the flow's; the trace bound is raised by
+    ``m_max - m``). The batched LAPACK calls may round differently from the per-flow ones:
+    equal within 1e-12 relative.
     """
 
     def __init__(self, flows: "list[RiccatiFlow]") -> None:
         self.flows = list(flows)
         fl = self.flows
-        self._G = np.stack([f._G for f in fl])
-        self._E = np.stack([f._E for f in fl])
+        self.sizes = [f._G.shape[0] for f in fl]
+        F, m = len(fl), max(self.sizes)
+        self.m = m
+        self._G = np.zeros((F, m, m))
+        self._E = np.zeros((F, m, m))
+        self._Ys = np.tile(np.eye(m), (F, 1, 1))
+        for i, (f, mi) in enumerate(zip(fl, self.sizes)):
+            self._G[i, :mi, :mi], self._E[i, :mi, :mi], self._Ys[i, :mi, :mi] = f._G, f._E, f._Ys
         self._Et = self._E.transpose(0, 2, 1).copy()
-        self._Ys = np.stack([f._Ys for f in fl])
-        self._bound = np.array([f.bound for f in fl])
-        self._I = fl[0]._I
-        self._D: np.ndarray | None = None  # the stacked deviations after the last stacked step
-        self._rows: list[np.ndarray] = []  # ... each flow's Delta (a row of it) while it is untouched
+        self._bound = np.array([f.bound + (m - mi) for f, mi in zip(fl, self.sizes)])
+        self._I = np.eye(m)
+        self._D: np.ndarray | None = None  # the stacked (padded) deviations after the last stacked step
+        self._rows: list[np.ndarray] = []  # ... each flow's Delta (a view into it) while it is untouched
+
+    def _views(self, D: np.ndarray) -> None:
+        self._D = D
+        self._rows = [D[i, :mi, :mi] for i, mi in enumerate(self.sizes)]
+        for f, d in zip(self.flows, self._rows):
+            f._Delta = d
 
     @property
     def deviations(self) -> np.ndarray:
-        """``(F, m, m)``: every flow's ``Delta`` (the stacked array of the last step while
-        each flow's ``Delta`` is still its row; read-only use)."""
+        """``(F, m_max, m_max)``: every flow's ``Delta``, zero-padded (the stacked array of the
+        last step while each flow's ``Delta`` is still its view; read-only use)."""
         D = self._D
         if D is None or any(f._Delta is not d for f, d in zip(self.flows, self._rows)):
-            D = self._D = np.stack([f._Delta for f in self.flows])
-            self._rows = list(D)
-            for f, d in zip(self.flows, self._rows):
-                f._Delta = d
+            D = np.zeros((len(self.flows), self.m, self.m))
+            for i, (f, mi) in enumerate(zip(self.flows, self.sizes)):
+                D[i, :mi, :mi] = f._Delta
+            self._views(D)
         return D
 
     def step(self) -> None:
@@ -416,8 +431,6 @@ class FlowStack:
             for f in fl:
                 f.step()
             return
-        self._D = Dn
-        self._rows = list(Dn)
-        for f, d in zip(fl, self._rows):
-            f._Delta = d
+        self._views(Dn)
+        for f in fl:
             f._t = f._t + f.dt

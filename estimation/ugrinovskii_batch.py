@@ -7,8 +7,8 @@ exact step of each Riccati flow (35), (41). :class:`UgrinovskiiBatch` keeps the 
 code for the inputs and for the gain refresh (each node re-discretises when its own
 Riccati solution moved; whether it moved is tested for every node's flows at once), and
 stacks the rest: the node states ``s+ = Phi s + Gd v`` of all
-nodes in one product and every observer / detector Riccati flow in one batched step
-(:class:`estimation.hinf_riccati.FlowStack`).
+nodes in one product and every observer and detector Riccati flow in one batched step
+(:class:`estimation.hinf_riccati.FlowStack`, the smaller flows padded to the largest size).
 
 The stacked products and the batched solve differ from the per-node calls in rounding,
 so the estimates equal the per-node path's within 1e-12 relative, not bit for bit.
@@ -35,16 +35,11 @@ class UgrinovskiiBatch(Batch):
         self._n = n = m0._pb.n
         dims = {(m._state_dim, m._input_dim()) for m in ms}
         self._same = len(dims) == 1
-        groups: dict[tuple, list] = {}
-        owner: dict[tuple, list] = {}  # per group: (member, position among its flows) of every flow
-        for i, m in enumerate(ms):
-            for a, fl in enumerate(m._flows()):
-                groups.setdefault(fl._Delta.shape, []).append(fl)
-                owner.setdefault(fl._Delta.shape, []).append((i, a))
-        self._flows = [FlowStack(g) for g in groups.values()]
-        self._owner = [np.array([i for i, _ in owner[key]]) for key in groups]
-        self._slot = [owner[key] for key in groups]
-        self._ref: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self._flows)
+        slots = [(i, a) for i, m in enumerate(ms) for a in range(len(m._flows()))]  # every flow's owner
+        self._flows = FlowStack([ms[i]._flows()[a] for i, a in slots])  # every flow, padded to one size
+        self._owner = np.array([i for i, _ in slots])
+        self._slot = slots
+        self._ref: tuple[np.ndarray, np.ndarray] | None = None  # the flows' padded Delta_0 and tolerances
         self._S: np.ndarray | None = None  # the stacked states after a stacked step
         self._finite = True  # ... all finite (so are the payloads, their leading parts)
         # the stacked discretisations [Phi], [Gd] (rows refreshed with their member's)
@@ -113,35 +108,33 @@ class UgrinovskiiBatch(Batch):
 
     # -- the gain refresh --------------------------------------------------------------------
     def _stale(self) -> np.ndarray:
-        """Every member's :meth:`~estimation.ugrinovskii._NodeBase._stale`, the flows of one
-        size tested in one stacked norm (``|Delta - Delta_0|_F > tol``)."""
+        """Every member's :meth:`~estimation.ugrinovskii._NodeBase._stale`, every flow tested
+        in one stacked norm (``|Delta - Delta_0|_F > tol``)."""
         ms = self.members
+        ref = self._ref
+        if ref is None:  # no stacked references (yet): each member's own test
+            return np.array([m._stale() for m in ms])
         stale = np.array([m._disc is None for m in ms])
-        if stale.all():
-            return stale
-        for g, (stack, own) in enumerate(zip(self._flows, self._owner)):
-            ref = self._ref[g]
-            if ref is None:
-                continue
-            d = stack.deviations - ref[0]
-            moved = np.sqrt(np.einsum("fij,fij->f", d, d)) > ref[1]
-            stale[own[moved]] = True
+        d = self._flows.deviations - ref[0]
+        moved = np.sqrt(np.einsum("fij,fij->f", d, d)) > ref[1]
+        stale[self._owner[moved]] = True
         return stale
 
     def _keep_refs(self, refreshed: np.ndarray) -> None:
         """The reference solutions of the members just re-discretised (their ``_ref``)."""
         ms = self.members
-        for g, slots in enumerate(self._slot):
-            ref = self._ref[g]
-            if ref is None:
-                if any(ms[i]._disc is None for i, _ in slots):
-                    continue
-                self._ref[g] = (np.stack([ms[i]._ref[a][0] for i, a in slots]),
-                                np.array([ms[i]._ref[a][1] for i, a in slots]))
-                continue
-            for s, (i, a) in enumerate(slots):
-                if refreshed[i]:
-                    ref[0][s], ref[1][s] = ms[i]._ref[a]
+        ref = self._ref
+        if ref is None:
+            if any(m._disc is None for m in ms):
+                return
+            m = self._flows.m
+            ref = self._ref = (np.zeros((len(self._slot), m, m)), np.zeros(len(self._slot)))
+            refreshed = np.ones(len(ms), dtype=bool)
+        for s, (i, a) in enumerate(self._slot):
+            if refreshed[i]:
+                D0, tol = ms[i]._ref[a]
+                mi = D0.shape[0]
+                ref[0][s, :mi, :mi], ref[1][s] = D0, tol
 
     def _discretisations(self) -> tuple[np.ndarray, np.ndarray]:
         """The stacked ``(Phi, Gd)`` of this round: each member's
@@ -151,6 +144,7 @@ class UgrinovskiiBatch(Batch):
         if stale.any():
             for i in np.flatnonzero(stale):
                 ms[i]._discretisation(True)
+        if stale.any() or self._ref is None:
             self._keep_refs(stale)
         if self._Phi is None:
             self._Phi = np.stack([m._disc[0] for m in ms])
@@ -173,7 +167,7 @@ class UgrinovskiiBatch(Batch):
         ms = self.members
         if not self._aligned(k):
             self._S = None
-            self._ref = [None] * len(self._flows)  # the members keep their own references
+            self._ref = None  # the members keep their own references
             self._Phi = None
             return [m.step(k, y, inbox) for m, y, inbox in zip(ms, measurements, inboxes)]
         V = np.stack([m._inputs(y, inbox) for m, y, inbox in zip(ms, measurements, inboxes)])
@@ -187,8 +181,7 @@ class UgrinovskiiBatch(Batch):
         ms = self.members
         Phi, Gd = self._discretisations()
         Snew = (Phi @ S[:, :, None])[:, :, 0] + (Gd @ V[:, :, None])[:, :, 0]
-        for stack in self._flows:
-            stack.step()
+        self._flows.step()
         self._S, self._finite = Snew, bool(np.isfinite(Snew).all())
         for m, s in zip(ms, Snew):
             m._s, m._k = s, k
