@@ -23,6 +23,7 @@ import numpy as np
 
 from .batching import Batch
 from .hinf_riccati import FlowStack
+from .ugrinovskii_system import Template, system, template
 
 
 class UgrinovskiiBatch(Batch):
@@ -46,6 +47,14 @@ class UgrinovskiiBatch(Batch):
         self._Phi: np.ndarray | None = None
         self._Gd: np.ndarray | None = None
         self._disc_of: list[Any] = [None] * len(ms)
+        # every member's constant part of (M, G) stacked (the stale ones re-discretised together)
+        for m in ms:
+            if m._tpl is None:
+                m._tpl = template(m)
+        tp = [m._tpl for m in ms]
+        self._tpl: Template | None = None
+        if self._same and len({(t.Z.shape, t.n, t.p, t.controlled) for t in tp}) == 1:
+            self._tpl = tp[0]._replace(**{f: np.stack([getattr(t, f) for t in tp]) for f in ("M0", "G0", "Z", "Ro", "Rd")})
         # the attack indicators u = Ups eps_hat (19) of all members at once
         ctl = m0._controlled
         self._Ups = np.stack([m._pb.Upsilon[m.node] for m in ms]) if ctl and self._same else None
@@ -141,8 +150,16 @@ class UgrinovskiiBatch(Batch):
         :meth:`~estimation.ugrinovskii._NodeBase._discretisation`, re-computed where it is stale."""
         ms = self.members
         stale = self._stale()
-        if stale.any():
-            for i in np.flatnonzero(stale):
+        idx = np.flatnonzero(stale)
+        if len(idx) > 1 and self._tpl is not None:  # the stale members' (M, G) in one stacked call
+            t = self._tpl
+            sub = t._replace(M0=t.M0[idx], G0=t.G0[idx], Z=t.Z[idx], Ro=t.Ro[idx], Rd=t.Rd[idx])
+            Yd = np.stack([ms[i]._det.Y for i in idx]) if t.controlled else None
+            M, G = system(sub, np.stack([ms[i]._obs.Y for i in idx]), Yd)
+            for j, i in enumerate(idx):
+                ms[i]._refresh(M[j], G[j])
+        else:
+            for i in idx:
                 ms[i]._discretisation(True)
         if stale.any() or self._ref is None:
             self._keep_refs(stale)
