@@ -370,7 +370,9 @@ class FlowStack:
     ``Delta``, ``G``, ``E`` padded with zeros and ``Y_s`` with the identity (so the padded
     block of ``I + Delta G`` is ``I``, of ``Delta`` stays 0 and of ``Y`` is ``I``: the
     determinant's sign and the Cholesky test are the flow's; the trace bound is raised by
-    ``m_max - m``). The batched LAPACK calls may round differently from the per-flow ones:
+    ``m_max - m``). Two sufficient conditions spare LAPACK calls once the deviations are
+    small: ``|Delta|_F |G|_F < 1/2`` gives ``det(I + Delta G) > 0``, and ``|Delta+|_F <
+    lambda_min(Y_s) / 2`` (for a well-conditioned ``Y_s``) a positive definite ``Y``. The batched LAPACK calls may round differently from the per-flow ones:
     equal within 1e-12 relative.
     """
 
@@ -387,6 +389,11 @@ class FlowStack:
             self._G[i, :mi, :mi], self._E[i, :mi, :mi], self._Ys[i, :mi, :mi] = f._G, f._E, f._Ys
         self._Et = self._E.transpose(0, 2, 1).copy()
         self._bound = np.array([f.bound + (m - mi) for f, mi in zip(fl, self.sizes)])
+        # sufficient conditions that spare the determinant and the Cholesky factorisation
+        # (see step): |G|_F, and half the smallest eigenvalue of Y_s where Y_s is well conditioned
+        self._Gnorm = np.sqrt(np.einsum("fij,fij->f", self._G, self._G))
+        lam = [np.linalg.eigvalsh(f._Ys) for f in fl]
+        self._margin = np.array([0.5 * v[0] if v[0] > 1e-8 * abs(v[-1]) else 0.0 for v in lam])
         self._I = np.eye(m)
         self._D: np.ndarray | None = None  # the stacked (padded) deviations after the last stacked step
         self._rows: list[np.ndarray] = []  # ... each flow's Delta (a view into it) while it is untouched
@@ -414,14 +421,18 @@ class FlowStack:
         Delta = self.deviations
         Amat = self._I + Delta @ self._G
         X = np.linalg.solve(Amat, Delta)
-        sign, _ = np.linalg.slogdet(Amat)
-        ok = bool((sign > 0).all()) and bool(np.isfinite(X).all())
+        # det(I + Delta G) > 0 without the determinant where |Delta G|_2 <= |Delta|_F |G|_F < 1/2
+        # (then det(I + s Delta G) has no zero for s in [0, 1]); else its sign
+        small = np.sqrt(np.einsum("fij,fij->f", Delta, Delta)) * self._Gnorm < 0.5
+        ok = bool(small.all()) or bool((np.linalg.slogdet(Amat)[0] > 0).all())
+        ok = ok and bool(np.isfinite(X).all())
         if ok:
             D = self._E @ X @ self._Et
             Dn = 0.5 * (D + D.transpose(0, 2, 1))
             Y = self._Ys + Dn
             ok = bool(np.isfinite(Y).all()) and bool((np.trace(Y, axis1=1, axis2=2) <= self._bound).all())
-            if ok:
+            # Y = Y_s + Delta is positive definite without Cholesky where |Delta|_F < lambda_min(Y_s) / 2
+            if ok and not bool((np.sqrt(np.einsum("fij,fij->f", Dn, Dn)) < self._margin).all()):
                 try:
                     np.linalg.cholesky(Y)
                 except np.linalg.LinAlgError:

@@ -51,7 +51,7 @@ import numpy as np
 
 from .base import Inbox, Received
 from .batching import Batch, Batchable
-from .errors import DesignError
+from .errors import DesignError, NumericalError
 from .hinf_lmi import ResilientProblem, node_riccati_data
 from .hinf_riccati import RiccatiFlow
 from .ugrinovskii_system import Template, system, template
@@ -212,10 +212,16 @@ class _NodeBase(Batchable):
         d, m = M.shape[0], G.shape[1]
         aug = np.zeros((d + m, d + m))
         aug[:d, :d], aug[:d, d:] = M * self.dt, G * self.dt
-        # exact diagonal (powers of 2) balancing: expm(aug) = T expm(T^-1 aug T) T^-1
-        from scipy.linalg import expm, matrix_balance  # not at import (see hinf_riccati)
+        # exact diagonal (powers of 2) balancing: expm(aug) = T expm(T^-1 aug T) T^-1, by
+        # LAPACK's gebal without permutation (what scipy.linalg.matrix_balance(permute=False) calls)
+        from scipy.linalg import expm  # not at import (see hinf_riccati)
+        from scipy.linalg.lapack import dgebal
 
-        bal, (sc, _) = matrix_balance(aug, permute=False, separate=True)
+        if not np.isfinite(aug).all():
+            raise NumericalError(f"node {self.node}: the gains are not finite")
+        bal, _, _, sc, info = dgebal(aug, scale=1, permute=0, overwrite_a=1)
+        if info != 0:
+            raise NumericalError(f"node {self.node}: balancing failed (gebal info {info})")
         E = sc[:, None] * expm(bal) / sc[None, :]
         self._disc = (E[:d, :d].copy(), E[:d, d:].copy())
         self._ref = tuple((fl.deviation.copy(), self.gain_rtol * np.linalg.norm(fl.Y)) for fl in self._flows())
