@@ -33,7 +33,7 @@ class UgrinovskiiBatch(Batch):
         super().__init__(members, **kw)
         ms = self.members
         m0 = ms[0]
-        self._n = n = m0._pb.n
+        self._n = m0._pb.n
         dims = {(m._state_dim, m._input_dim()) for m in ms}
         self._same = len(dims) == 1
         slots = [(i, a) for i, m in enumerate(ms) for a in range(len(m._flows()))]  # every flow's owner
@@ -79,7 +79,7 @@ class UgrinovskiiBatch(Batch):
         if any(self.agents[i] != m.node for i, m in enumerate(ms)):
             return None
         m0 = ms[0]
-        n, p, pj, nf = self._n, m0._p, m0._pj, m0._nf
+        p, pj, nf = m0._p, m0._pj, m0._nf
         rows = np.stack(self.rows) if len({len(r) for r in self.rows}) == 1 else None
         if rows is None or rows.shape[1] != p:
             return None
@@ -169,10 +169,10 @@ class UgrinovskiiBatch(Batch):
             self._disc_of = [m._disc for m in ms]
         else:
             assert self._Gd is not None
-            for i, m in enumerate(ms):
-                if m._disc is not self._disc_of[i]:
-                    self._Phi[i], self._Gd[i] = m._disc
-                    self._disc_of[i] = m._disc
+            for a, m in enumerate(ms):
+                if m._disc is not self._disc_of[a]:
+                    self._Phi[a], self._Gd[a] = m._disc
+                    self._disc_of[a] = m._disc
         assert self._Gd is not None
         return self._Phi, self._Gd
 
@@ -192,9 +192,9 @@ class UgrinovskiiBatch(Batch):
         self._advance(k, S, V)
         return [m._payload() for m in ms]
 
-    def _advance(self, k: int, S: np.ndarray, V: np.ndarray) -> None:
+    def _advance(self, k: int, S: np.ndarray, V: np.ndarray) -> np.ndarray:
         """``s+ = Phi s + Gd v`` for every member, one exact step of every Riccati flow, the
-        members' state, round and round-end hook."""
+        members' state, round and round-end hook; returns the stacked new states."""
         ms = self.members
         Phi, Gd = self._discretisations()
         Snew = (Phi @ S[:, :, None])[:, :, 0] + (Gd @ V[:, :, None])[:, :, 0]
@@ -203,6 +203,7 @@ class UgrinovskiiBatch(Batch):
         for m, s in zip(ms, Snew):
             m._s, m._k = s, k
         type(ms[0])._after_steps(ms, self._indicators())
+        return Snew
 
     def _indicators(self) -> np.ndarray:
         """``(M, nf)``: every member's ``u = Ups eps_hat`` (19) (the baseline's: 0)."""
@@ -236,9 +237,9 @@ class UgrinovskiiBatch(Batch):
             for m, nb in zip(ms, self.in_neighbours):
                 for j in nb:
                     m._last[self.agents[j]] = P[j]
-            self._advance(k, S, self._closed_inputs(S, y))
-            self._last = list(self._S[:, :pd])
-            return self._S[:, : self._n].copy()
+            Snew = self._advance(k, S, self._closed_inputs(S, y))
+            self._last = list(Snew[:, :pd])
+            return Snew[:, : self._n].copy()
         if last is not None:
             for m, nb in zip(ms, self.in_neighbours):
                 for j in nb:

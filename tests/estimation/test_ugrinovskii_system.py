@@ -28,7 +28,7 @@ def explicit_system(node) -> tuple[np.ndarray, np.ndarray]:
     c_sl = [slice(cols[1 + a], cols[2 + a]) for a in range(len(pj))]
     e_sl = [slice(cols[1 + len(pj) + a], cols[2 + len(pj) + a]) for a in range(len(pj))]
     f_sl, fc_sl = slice(cols[-3], cols[-2]), slice(cols[-2], cols[-1])
-    KW = lambda Ks: sum((Kj @ Wj for Kj, Wj in zip(Ks, W)), np.zeros((Ks[0].shape[0], n)))  # noqa: E731
+    KW = lambda Ks: sum((Kj @ Wj for Kj, Wj in zip(Ks, W)), np.zeros((Ks[0].shape[0], n)))
     X, E = slice(0, n), slice(n, 2 * n)
     M[X, X] = pb.A - L @ C - KW(K)
     G[X, 0:p], G[X, f_sl] = L, F
