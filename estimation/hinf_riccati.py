@@ -364,7 +364,8 @@ class FlowStack:
     :meth:`step` is :meth:`RiccatiFlow.step` of every flow, stacked: ``X = (I + Delta G)^-1
     Delta`` by one batched solve, the escape test on the sign of ``det(I + Delta G)``,
     ``Delta+ = sym(E X E^T)`` and the checks of :func:`check_riccati_solution` (Cholesky,
-    trace bound) for all of them; each flow's ``Delta`` and time are updated. Where any flow
+    trace bound) for all of them; each flow's ``Delta`` and time are written back by
+    :meth:`sync` (the stack runs ahead of its flows until then). Where any flow
     fails a test, every flow takes its own :meth:`~RiccatiFlow.step` instead, which raises
     the per-flow error. Flows of different sizes ``m`` are stacked at the largest size ``m_max``:
     ``Delta``, ``G``, ``E`` padded with zeros and ``Y_s`` with the identity (so the padded
@@ -395,25 +396,40 @@ class FlowStack:
         lam = [np.linalg.eigvalsh(f._Ys) for f in fl]
         self._margin = np.array([0.5 * v[0] if v[0] > 1e-8 * abs(v[-1]) else 0.0 for v in lam])
         self._I = np.eye(m)
+        self._dt = np.array([f.dt for f in fl])
         self._D: np.ndarray | None = None  # the stacked (padded) deviations after the last stacked step
-        self._rows: list[np.ndarray] = []  # ... each flow's Delta (a view into it) while it is untouched
+        self._rows: list[np.ndarray] = []  # ... each flow's Delta (a view into it) once written back
+        self._T = np.array([f._t for f in fl])  # every flow's time
+        self._synced = True  # the flows hold the stack's Delta and time (else the stack is ahead)
 
-    def _views(self, D: np.ndarray) -> None:
-        self._D = D
+    def sync(self) -> None:
+        """Write the stacked deviations and times back into the flows (after stacked steps,
+        before anything reads or steps a flow by itself)."""
+        if self._synced or self._D is None:
+            return
+        D = self._D
         self._rows = [D[i, :mi, :mi] for i, mi in enumerate(self.sizes)]
-        for f, d in zip(self.flows, self._rows):
-            f._Delta = d
+        for f, d, t in zip(self.flows, self._rows, self._T.tolist()):
+            f._Delta, f._t = d, t
+        self._synced = True
 
     @property
     def deviations(self) -> np.ndarray:
-        """``(F, m_max, m_max)``: every flow's ``Delta``, zero-padded (the stacked array of the
-        last step while each flow's ``Delta`` is still its view; read-only use)."""
+        """``(F, m_max, m_max)``: every flow's ``Delta``, zero-padded (read-only use): the
+        stack's own after stacked steps, else gathered from the flows (which may have been
+        stepped alone)."""
         D = self._D
+        if D is not None and not self._synced:
+            return D
         if D is None or any(f._Delta is not d for f, d in zip(self.flows, self._rows)):
             D = np.zeros((len(self.flows), self.m, self.m))
             for i, (f, mi) in enumerate(zip(self.flows, self.sizes)):
                 D[i, :mi, :mi] = f._Delta
-            self._views(D)
+            self._D = D
+            self._rows = [D[i, :mi, :mi] for i, mi in enumerate(self.sizes)]
+            for f, d in zip(self.flows, self._rows):
+                f._Delta = d
+            self._T = np.array([f._t for f in self.flows])
         return D
 
     def step(self) -> None:
@@ -438,10 +454,10 @@ class FlowStack:
                 except np.linalg.LinAlgError:
                     ok = False
         if not ok:
+            self.sync()
             self._D = None
             for f in fl:
                 f.step()
             return
-        self._views(Dn)
-        for f in fl:
-            f._t = f._t + f.dt
+        self._D, self._synced = Dn, False
+        self._T = self._T + self._dt

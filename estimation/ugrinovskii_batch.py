@@ -122,11 +122,13 @@ class UgrinovskiiBatch(Batch):
         ms = self.members
         ref = self._ref
         if ref is None:  # no stacked references (yet): each member's own test
+            self._flows.sync()
             return np.array([m._stale() for m in ms])
-        stale = np.array([m._disc is None for m in ms])
+        stale = np.zeros(len(ms), dtype=bool)  # (with references, every member has a discretisation)
         d = self._flows.deviations - ref[0]
         moved = np.sqrt(np.einsum("fij,fij->f", d, d)) > ref[1]
-        stale[self._owner[moved]] = True
+        if moved.any():
+            stale[self._owner[moved]] = True
         return stale
 
     def _keep_refs(self, refreshed: np.ndarray) -> None:
@@ -151,6 +153,9 @@ class UgrinovskiiBatch(Batch):
         ms = self.members
         stale = self._stale()
         idx = np.flatnonzero(stale)
+        if not len(idx) and self._Phi is not None and self._Gd is not None and self._ref is not None:
+            return self._Phi, self._Gd
+        self._flows.sync()  # the stale members read their flows
         if len(idx) > 1 and self._tpl is not None:  # the stale members' (M, G) in one stacked call
             t = self._tpl
             sub = t._replace(M0=t.M0[idx], G0=t.G0[idx], Z=t.Z[idx], Ro=t.Ro[idx], Rd=t.Rd[idx])
@@ -169,7 +174,8 @@ class UgrinovskiiBatch(Batch):
             self._disc_of = [m._disc for m in ms]
         else:
             assert self._Gd is not None
-            for a, m in enumerate(ms):
+            for a in idx:
+                m = ms[a]
                 if m._disc is not self._disc_of[a]:
                     self._Phi[a], self._Gd[a] = m._disc
                     self._disc_of[a] = m._disc
@@ -183,6 +189,7 @@ class UgrinovskiiBatch(Batch):
     def step(self, k: int, measurements, inboxes) -> list[np.ndarray]:
         ms = self.members
         if not self._aligned(k):
+            self._flows.sync()
             self._S = None
             self._ref = None  # the members keep their own references
             self._Phi = None
@@ -247,6 +254,10 @@ class UgrinovskiiBatch(Batch):
                         m._last[self.agents[j]] = last[j]
         self._last = self.step(k, [y[r] for r in self.rows], [{}] * len(ms))
         return self.estimates()
+
+    def sync(self) -> None:
+        """Every Riccati flow's solution and time written back into its member."""
+        self._flows.sync()
 
     def estimates(self) -> np.ndarray:
         n = self._n

@@ -99,7 +99,8 @@ class _Runtime(Diagnostics, Flags):
         """:meth:`_after_step` of every member from the stacked indicators ``(M, nf)``."""
         peak = np.max(np.abs(indicators), axis=1, initial=0.0)
         for m, u in zip(members, peak.tolist()):
-            m._flag(m.t, u)
+            if u > m.threshold or m._above_since is not None:  # else the update leaves the flag down
+                m._flag(m.t, u)
 
     def _flag(self, t: float, peak: float) -> None:
         """The flag's update at time ``t`` from ``max |u_i|`` (``peak``)."""
