@@ -209,20 +209,31 @@ class _NodeBase(Batchable):
     def _refresh(self, M: np.ndarray, G: np.ndarray) -> None:
         """The discretisation of ``s' = M s + G v`` over ``dt`` (the current Riccati
         solutions' ``(M, G)``) and the solutions it was computed at."""
+        from scipy.linalg import expm  # not at import (see hinf_riccati)
+
+        bal, sc = self._balanced(M, G)
+        self._refreshed(expm(bal), sc)
+
+    def _balanced(self, M: np.ndarray, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``T^-1 [[M, G], [0, 0]] dt T`` and the diagonal of ``T``: exact diagonal (powers of
+        2) balancing, ``expm(aug) = T expm(T^-1 aug T) T^-1``, by LAPACK's gebal without
+        permutation (what ``scipy.linalg.matrix_balance(permute=False)`` calls)."""
+        from scipy.linalg.lapack import dgebal  # not at import (see hinf_riccati)
+
         d, m = M.shape[0], G.shape[1]
         aug = np.zeros((d + m, d + m))
         aug[:d, :d], aug[:d, d:] = M * self.dt, G * self.dt
-        # exact diagonal (powers of 2) balancing: expm(aug) = T expm(T^-1 aug T) T^-1, by
-        # LAPACK's gebal without permutation (what scipy.linalg.matrix_balance(permute=False) calls)
-        from scipy.linalg import expm  # not at import (see hinf_riccati)
-        from scipy.linalg.lapack import dgebal
-
         if not np.isfinite(aug).all():
             raise NumericalError(f"node {self.node}: the gains are not finite")
         bal, _, _, sc, info = dgebal(aug, scale=1, permute=0, overwrite_a=1)
         if info != 0:
             raise NumericalError(f"node {self.node}: balancing failed (gebal info {info})")
-        E = sc[:, None] * expm(bal) / sc[None, :]
+        return bal, sc
+
+    def _refreshed(self, expbal: np.ndarray, sc: np.ndarray) -> None:
+        """Keep ``(Phi, Gd)`` from ``expm`` of :meth:`_balanced`'s matrix and the solutions now."""
+        d = self._state_dim
+        E = sc[:, None] * expbal / sc[None, :]
         self._disc = (E[:d, :d].copy(), E[:d, d:].copy())
         self._ref = tuple((fl.deviation.copy(), self.gain_rtol * np.linalg.norm(fl.Y)) for fl in self._flows())
         self.refreshes += 1

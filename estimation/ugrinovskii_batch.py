@@ -161,8 +161,12 @@ class UgrinovskiiBatch(Batch):
             sub = t._replace(M0=t.M0[idx], G0=t.G0[idx], Z=t.Z[idx], Ro=t.Ro[idx], Rd=t.Rd[idx])
             Yd = np.stack([ms[i]._det.Y for i in idx]) if t.controlled else None
             M, G = system(sub, np.stack([ms[i]._obs.Y for i in idx]), Yd)
+            bal = [ms[i]._balanced(M[j], G[j]) for j, i in enumerate(idx)]
+            from scipy.linalg import expm  # not at import (see hinf_riccati)
+
+            expbal = expm(np.stack([b for b, _ in bal]))  # slice by slice as the nodes' own calls
             for j, i in enumerate(idx):
-                ms[i]._refresh(M[j], G[j])
+                ms[i]._refreshed(expbal[j], bal[j][1])
         else:
             for i in idx:
                 ms[i]._discretisation(True)
