@@ -56,7 +56,7 @@ def explicit_system(node) -> tuple[np.ndarray, np.ndarray]:
     return M, G
 
 
-@pytest.mark.parametrize("name", ["ugrinovskii_biasing.toml", "ugrinovskii_baseline.toml"])
+@pytest.mark.parametrize("name", ["ugrinovskii_biasing.toml", "ugrinovskii_baseline.toml", "ugrinovskii_detector_attack.toml"])
 def test_affine_system_equals_the_gains_of_the_paper(name: str) -> None:
     from agents.api import load_experiment
     from agents.simulate import make_channel, make_nodes
