@@ -25,7 +25,7 @@ nothing.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -126,6 +126,21 @@ class Monitor:
             if self.flags is None:
                 self.flags = np.full((K, self.exp.N), np.nan)
             self.flags[k, i] = 1.0 if flagged else 0.0
+
+    def record_diagnostic_rows(self, k: int, agents: Sequence[int], values: Mapping[str, np.ndarray],
+                               flagged: np.ndarray | None = None) -> None:
+        """:meth:`record_diagnostics` of several agents at once: ``values`` name -> ``(M,)``
+        (one per agent index in ``agents``), ``flagged`` ``(M,)`` bool or None."""
+        K = self.error_2.shape[0]
+        for name, v in values.items():
+            arr = self.diagnostics.get(name)
+            if arr is None:
+                arr = self.diagnostics[name] = np.full((K, self.exp.N), np.nan)
+            arr[k, agents] = v
+        if flagged is not None:
+            if self.flags is None:
+                self.flags = np.full((K, self.exp.N), np.nan)
+            self.flags[k, agents] = flagged
 
     def record(self, k: int, x: np.ndarray, estimates: np.ndarray, present: np.ndarray | None = None) -> None:
         """Record round ``k``: ``x`` (n,), ``estimates`` (N, n); ``present`` (N,) bool mask

@@ -132,7 +132,6 @@ def simulate(
             views.append(view)
     reads = Reads(exp)
     measurement = reads.measurement
-    diag = [(i, nodes[i].estimator) for i in range(N) if has_diagnostics(nodes[i].estimator)]
     feed = None
     if dashboard is not None:
         feed = DashboardFeed(dashboard, N, lambda: receiver_counters(nodes))
@@ -141,6 +140,9 @@ def simulate(
     in_batch = {i for g in groups for i in g.agents}
     singles = [i for i in order if i not in in_batch]
     closed = closed_team(exp, nodes, groups, channel) if batched else None
+    rows_diag = [(g, np.asarray(g.agents)) for g in groups if g.diagnostic_rows]  # read all at once
+    by_rows = {i for g, _ in rows_diag for i in g.agents}
+    diag = [(i, nodes[i].estimator) for i in range(N) if i not in by_rows and has_diagnostics(nodes[i].estimator)]
     est_out = np.empty((N, n))
     traj = np.empty((K + 1, N, n)) if keep_trajectories else None
     truth = np.empty((K + 1, n)) if keep_trajectories else None
@@ -182,6 +184,10 @@ def simulate(
                 feed.set_arrivals(k, (node.arrived for node in nodes))
         if record:
             mon.record(k, x, est_k)
+            for g, idx in rows_diag:
+                got = g.diagnostics()
+                if got is not None:
+                    mon.record_diagnostic_rows(k, idx, *got)
             for i, est in diag:
                 mon.record_diagnostics(k, i, *read_diagnostics(est))
         if keep_trajectories:

@@ -27,7 +27,8 @@ Contract (what makes the batched simulator equal to the per-agent one):
   of round ``k`` and :meth:`Batchable.batch` was told each member's rows. The default
   builds those inboxes and calls :meth:`step`.
 * After every step each member's diagnostics (``diagnostics()``, ``flagged``) read as
-  after its own ``step`` (the simulator reads them from the members every round).
+  after its own ``step`` (the simulator reads them from the members every round, or from
+  :meth:`Batch.diagnostics` all at once where :attr:`Batch.diagnostic_rows` is set).
 * :meth:`Batch.sync` writes the stacked state back into the member objects (the
   simulator calls it after the last round, so ``est.estimate`` reads the end state).
 """
@@ -83,6 +84,15 @@ class Batch(ABC):
         self._last = self.step(k, [y[r] for r in self.rows], inboxes)
         got = self.estimates()
         return np.stack(got) if isinstance(got, list) else got
+
+    #: whether :meth:`diagnostics` reads every member's diagnostics at once
+    diagnostic_rows = False
+
+    def diagnostics(self) -> tuple[dict[str, np.ndarray], np.ndarray | None] | None:
+        """Every member's ``diagnostics()`` as ``name -> (M,)`` rows and ``flagged`` as an
+        ``(M,)`` bool array (None: no flags), equal to what each member reads after the last
+        step; None when :attr:`diagnostic_rows` is False (then each member is read)."""
+        return None
 
     def sync(self) -> None:
         """Write the stacked state back into the member objects (default: nothing to write)."""

@@ -359,48 +359,105 @@ class RiccatiFlow:
 
 
 class FlowStack:
-    """Several :class:`RiccatiFlow` of one size stepped together (the batched round).
+    """Several :class:`RiccatiFlow` stepped together (the batched round).
 
     :meth:`step` is :meth:`RiccatiFlow.step` of every flow, stacked: ``X = (I + Delta G)^-1
     Delta`` by one batched solve, the escape test on the sign of ``det(I + Delta G)``,
     ``Delta+ = sym(E X E^T)`` and the checks of :func:`check_riccati_solution` (Cholesky,
-    trace bound) for all of them; each flow's ``Delta`` and time are updated. Where any flow
+    trace bound) for all of them; each flow's ``Delta`` and time are written back by
+    :meth:`sync` (the stack runs ahead of its flows until then). Where any flow
     fails a test, every flow takes its own :meth:`~RiccatiFlow.step` instead, which raises
-    the per-flow error. The batched LAPACK calls may round differently from the per-flow
-    ones: equal within 1e-12 relative (bit-identical on the reference machine).
+    the per-flow error. Flows of different sizes ``m`` are stacked at the largest size ``m_max``:
+    ``Delta``, ``G``, ``E`` padded with zeros and ``Y_s`` with the identity (so the padded
+    block of ``I + Delta G`` is ``I``, of ``Delta`` stays 0 and of ``Y`` is ``I``: the
+    determinant's sign and the Cholesky test are the flow's; the trace bound is raised by
+    ``m_max - m``). Two sufficient conditions spare LAPACK calls once the deviations are
+    small: ``|Delta|_F |G|_F < 1/2`` gives ``det(I + Delta G) > 0``, and ``|Delta+|_F <
+    lambda_min(Y_s) / 2`` (for a well-conditioned ``Y_s``) a positive definite ``Y``. The batched LAPACK calls may round differently from the per-flow ones:
+    equal within 1e-12 relative.
     """
 
     def __init__(self, flows: "list[RiccatiFlow]") -> None:
         self.flows = list(flows)
         fl = self.flows
-        self._G = np.stack([f._G for f in fl])
-        self._E = np.stack([f._E for f in fl])
+        self.sizes = [f._G.shape[0] for f in fl]
+        F, m = len(fl), max(self.sizes)
+        self.m = m
+        self._G = np.zeros((F, m, m))
+        self._E = np.zeros((F, m, m))
+        self._Ys = np.tile(np.eye(m), (F, 1, 1))
+        for i, (f, mi) in enumerate(zip(fl, self.sizes)):
+            self._G[i, :mi, :mi], self._E[i, :mi, :mi], self._Ys[i, :mi, :mi] = f._G, f._E, f._Ys
         self._Et = self._E.transpose(0, 2, 1).copy()
-        self._Ys = np.stack([f._Ys for f in fl])
-        self._bound = np.array([f.bound for f in fl])
-        self._I = fl[0]._I
+        self._bound = np.array([f.bound + (m - mi) for f, mi in zip(fl, self.sizes)])
+        # sufficient conditions that spare the determinant and the Cholesky factorisation
+        # (see step): |G|_F, and half the smallest eigenvalue of Y_s where Y_s is well conditioned
+        self._Gnorm = np.sqrt(np.einsum("fij,fij->f", self._G, self._G))
+        lam = [np.linalg.eigvalsh(f._Ys) for f in fl]
+        self._margin = np.array([0.5 * v[0] if v[0] > 1e-8 * abs(v[-1]) else 0.0 for v in lam])
+        self._I = np.eye(m)
+        self._dt = np.array([f.dt for f in fl])
+        self._D: np.ndarray | None = None  # the stacked (padded) deviations after the last stacked step
+        self._rows: list[np.ndarray] = []  # ... each flow's Delta (a view into it) once written back
+        self._T = np.array([f._t for f in fl])  # every flow's time
+        self._synced = True  # the flows hold the stack's Delta and time (else the stack is ahead)
+
+    def sync(self) -> None:
+        """Write the stacked deviations and times back into the flows (after stacked steps,
+        before anything reads or steps a flow by itself)."""
+        if self._synced or self._D is None:
+            return
+        D = self._D
+        self._rows = [D[i, :mi, :mi] for i, mi in enumerate(self.sizes)]
+        for f, d, t in zip(self.flows, self._rows, self._T.tolist()):
+            f._Delta, f._t = d, t
+        self._synced = True
+
+    @property
+    def deviations(self) -> np.ndarray:
+        """``(F, m_max, m_max)``: every flow's ``Delta``, zero-padded (read-only use): the
+        stack's own after stacked steps, else gathered from the flows (which may have been
+        stepped alone)."""
+        D = self._D
+        if D is not None and not self._synced:
+            return D
+        if D is None or any(f._Delta is not d for f, d in zip(self.flows, self._rows)):
+            D = np.zeros((len(self.flows), self.m, self.m))
+            for i, (f, mi) in enumerate(zip(self.flows, self.sizes)):
+                D[i, :mi, :mi] = f._Delta
+            self._D = D
+            self._rows = [D[i, :mi, :mi] for i, mi in enumerate(self.sizes)]
+            for f, d in zip(self.flows, self._rows):
+                f._Delta = d
+            self._T = np.array([f._t for f in self.flows])
+        return D
 
     def step(self) -> None:
         fl = self.flows
-        Delta = np.stack([f._Delta for f in fl])
+        Delta = self.deviations
         Amat = self._I + Delta @ self._G
         X = np.linalg.solve(Amat, Delta)
-        sign, _ = np.linalg.slogdet(Amat)
-        ok = bool(np.all(sign > 0)) and bool(np.all(np.isfinite(X)))
+        # det(I + Delta G) > 0 without the determinant where |Delta G|_2 <= |Delta|_F |G|_F < 1/2
+        # (then det(I + s Delta G) has no zero for s in [0, 1]); else its sign
+        small = np.sqrt(np.einsum("fij,fij->f", Delta, Delta)) * self._Gnorm < 0.5
+        ok = bool(small.all()) or bool((np.linalg.slogdet(Amat)[0] > 0).all())
+        ok = ok and bool(np.isfinite(X).all())
         if ok:
             D = self._E @ X @ self._Et
             Dn = 0.5 * (D + D.transpose(0, 2, 1))
             Y = self._Ys + Dn
-            ok = bool(np.all(np.isfinite(Y))) and bool(np.all(np.trace(Y, axis1=1, axis2=2) <= self._bound))
-            if ok:
+            ok = bool(np.isfinite(Y).all()) and bool((np.trace(Y, axis1=1, axis2=2) <= self._bound).all())
+            # Y = Y_s + Delta is positive definite without Cholesky where |Delta|_F < lambda_min(Y_s) / 2
+            if ok and not bool((np.sqrt(np.einsum("fij,fij->f", Dn, Dn)) < self._margin).all()):
                 try:
                     np.linalg.cholesky(Y)
                 except np.linalg.LinAlgError:
                     ok = False
         if not ok:
+            self.sync()
+            self._D = None
             for f in fl:
                 f.step()
             return
-        for f, d in zip(fl, Dn):
-            f._Delta = d
-            f._t = f._t + f.dt
+        self._D, self._synced = Dn, False
+        self._T = self._T + self._dt

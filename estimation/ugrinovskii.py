@@ -51,9 +51,10 @@ import numpy as np
 
 from .base import Inbox, Received
 from .batching import Batch, Batchable
-from .errors import DesignError
+from .errors import DesignError, NumericalError
 from .hinf_lmi import ResilientProblem, node_riccati_data
-from .hinf_riccati import RiccatiFlow, difference_gains, filter_gains, split_detector_gains
+from .hinf_riccati import RiccatiFlow
+from .ugrinovskii_system import Template, system, template
 
 __all__ = ["first_order_attack_model", "UgrinovskiiNode", "UgrinovskiiBaseline", "run_network"]
 
@@ -136,6 +137,7 @@ class _NodeBase(Batchable):
         self._last: dict[int, np.ndarray] = {}
         self._k: int | None = None
         self._disc: tuple[np.ndarray, np.ndarray] | None = None
+        self._tpl: Template | None = None  # the constant part of (M, G), built at the first refresh
         self._ref: tuple = ()
         self.rejected = 0
         self.refreshes = 0
@@ -178,45 +180,11 @@ class _NodeBase(Batchable):
         return self._p + 2 * sum(self._pj) + 2 * self._nf
 
     def _system(self) -> tuple[np.ndarray, np.ndarray]:
-        pb, i, n = self._pb, self.node, self._pb.n
-        C, F, W = pb.C[i], pb.F[i], [pb.W[(i, j)] for j in self._nb]
-        L, K = filter_gains(self._obs.Y, C=C, D=pb.D[i], W=W, U=self._Ub)  # (42)
-        d, p, nf, pj = self._state_dim, self._p, self._nf, self._pj
-        M = np.zeros((d, d))
-        G = np.zeros((d, self._input_dim()))
-        cols = np.cumsum([0, p] + pj + pj + [nf, nf])  # y | c_j | eta_j | f | f_c
-        c_sl = [slice(cols[1 + a], cols[2 + a]) for a in range(len(pj))]
-        e_sl = [slice(cols[1 + len(pj) + a], cols[2 + len(pj) + a]) for a in range(len(pj))]
-        f_sl, fc_sl = slice(cols[-3], cols[-2]), slice(cols[-2], cols[-1])
-        Aobs = pb.A - L @ C - sum((Kj @ Wj for Kj, Wj in zip(K, W)), np.zeros((n, n)))
-        X, E = slice(0, n), slice(n, 2 * n)
-        M[X, X] = Aobs
-        G[X, 0:p] = L
-        for a, Kj in enumerate(K):
-            G[X, c_sl[a]] = Kj
-        G[X, f_sl] = F
-        if self._controlled:
-            Eps = slice(2 * n, d)
-            Ups, Fc = pb.Upsilon[i], pb.Fc[i]
-            Fbar, Gbar = Fc[:n], Fc[n:]
-            Lb_, Kb_ = filter_gains(self._det.Y, C=np.hstack([C, np.zeros((p, self._ne))]), D=pb.D[i],
-                                    W=[np.hstack([Wj, np.zeros((Wj.shape[0], self._ne))]) for Wj in W], U=self._U)
-            Lh, Lc, Kh, Kc = split_detector_gains(Lb_, Kb_, n=n)  # (36), (31)
-            Lbar, Kbar = difference_gains(Lh, Kh, L, K)  # (44)
-            KW = lambda Ks: sum((Kj @ Wj for Kj, Wj in zip(Ks, W)), np.zeros((Ks[0].shape[0] if Ks else 0, n)))
-            M[X, Eps] = -F @ Ups
-            M[E, X] = -Lbar @ C - (KW(Kbar) if K else 0.0)
-            M[E, E] = pb.A - Lh @ C - (KW(Kh) if K else 0.0)
-            M[E, Eps] = -Fbar @ Ups
-            M[Eps, X] = -Lc @ C - (KW(Kc) if K else 0.0)
-            M[Eps, E] = M[Eps, X]
-            M[Eps, Eps] = pb.Omega[i] - Gbar @ Ups
-            G[E, 0:p], G[Eps, 0:p] = Lbar, Lc
-            for a in range(len(K)):
-                G[E, c_sl[a]], G[E, e_sl[a]] = Kbar[a], Kh[a]
-                G[Eps, c_sl[a]], G[Eps, e_sl[a]] = Kc[a], Kc[a]
-            G[E, fc_sl], G[Eps, fc_sl] = Fbar, Gbar
-        return M, G
+        """``(M, G)`` at the current Riccati solutions: the gains (42), (36), (31), (44) in
+        (8), (17) (:func:`estimation.ugrinovskii_system.system`)."""
+        if self._tpl is None:
+            self._tpl = template(self)
+        return system(self._tpl, self._obs.Y, self._det.Y if self._controlled else None)
 
     def _flows(self) -> tuple[RiccatiFlow, ...]:
         return (self._obs, self._det) if self._controlled else (self._obs,)
@@ -231,24 +199,44 @@ class _NodeBase(Batchable):
     def _discretisation(self, stale: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(Phi, Gd)`` of the step; ``stale``: :meth:`_stale` when already known (a batch
         tests every node's flows at once)."""
-        flows = self._flows()
         if stale is None:
             stale = self._stale()
         if stale or self._disc is None:
-            M, G = self._system()
-            d, m = M.shape[0], G.shape[1]
-            aug = np.zeros((d + m, d + m))
-            aug[:d, :d], aug[:d, d:] = M * self.dt, G * self.dt
-            # exact diagonal (powers of 2) balancing: expm(aug) = T expm(T^-1 aug T) T^-1
-            from scipy.linalg import expm, matrix_balance  # not at import (see hinf_riccati)
-
-            bal, (sc, _) = matrix_balance(aug, permute=False, separate=True)
-            E = sc[:, None] * expm(bal) / sc[None, :]
-            self._disc = (E[:d, :d].copy(), E[:d, d:].copy())
-            self._ref = tuple((fl.deviation.copy(), self.gain_rtol * np.linalg.norm(fl.Y)) for fl in flows)
-            self.refreshes += 1
+            self._refresh(*self._system())
         assert self._disc is not None
         return self._disc
+
+    def _refresh(self, M: np.ndarray, G: np.ndarray) -> None:
+        """The discretisation of ``s' = M s + G v`` over ``dt`` (the current Riccati
+        solutions' ``(M, G)``) and the solutions it was computed at."""
+        from scipy.linalg import expm  # not at import (see hinf_riccati)
+
+        bal, sc = self._balanced(M, G)
+        self._refreshed(expm(bal), sc)
+
+    def _balanced(self, M: np.ndarray, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``T^-1 [[M, G], [0, 0]] dt T`` and the diagonal of ``T``: exact diagonal (powers of
+        2) balancing, ``expm(aug) = T expm(T^-1 aug T) T^-1``, by LAPACK's gebal without
+        permutation (what ``scipy.linalg.matrix_balance(permute=False)`` calls)."""
+        from scipy.linalg.lapack import dgebal  # not at import (see hinf_riccati)
+
+        d, m = M.shape[0], G.shape[1]
+        aug = np.zeros((d + m, d + m))
+        aug[:d, :d], aug[:d, d:] = M * self.dt, G * self.dt
+        if not np.isfinite(aug).all():
+            raise NumericalError(f"node {self.node}: the gains are not finite")
+        bal, _, _, sc, info = dgebal(aug, scale=1, permute=0, overwrite_a=1)
+        if info != 0:
+            raise NumericalError(f"node {self.node}: balancing failed (gebal info {info})")
+        return bal, sc
+
+    def _refreshed(self, expbal: np.ndarray, sc: np.ndarray) -> None:
+        """Keep ``(Phi, Gd)`` from ``expm`` of :meth:`_balanced`'s matrix and the solutions now."""
+        d = self._state_dim
+        E = sc[:, None] * expbal / sc[None, :]
+        self._disc = (E[:d, :d].copy(), E[:d, d:].copy())
+        self._ref = tuple((fl.deviation.copy(), self.gain_rtol * np.linalg.norm(fl.Y)) for fl in self._flows())
+        self.refreshes += 1
 
     # -- one round ------------------------------------------------------------------------
     def _inputs(self, measurement: np.ndarray | None, inbox: Inbox) -> np.ndarray:
@@ -320,6 +308,26 @@ class _NodeBase(Batchable):
 
     def _after_step(self) -> None:
         """Called at the end of every :meth:`step` (the runtime updates its attack flag)."""
+
+    # -- what a batch (estimation.ugrinovskii_batch) may do for all members at once ------------
+    def _plain_inputs(self) -> bool:
+        """Whether :meth:`_inputs` is this module's (a batch may then build every member's
+        inputs from the stacked states; a runtime that adds to them says False)."""
+        return True
+
+    @classmethod
+    def _after_steps(cls, members: "list[_NodeBase]", indicators: np.ndarray) -> None:
+        """:meth:`_after_step` of every member of a batch after a stacked step;
+        ``indicators``: their :attr:`attack_indicator` ``u`` (19) as rows ``(M, nf)``."""
+        for m in members:
+            m._after_step()
+
+    @classmethod
+    def _diagnostic_rows(cls, members: "list[_NodeBase]",
+                         indicators: np.ndarray | None) -> tuple[dict[str, np.ndarray], np.ndarray | None] | None:
+        """Every member's diagnostics and attack flag as rows from their indicators
+        ``(M, nf)`` (a runtime's; None: not offered; ``indicators`` None: only whether)."""
+        return None
 
 
 class UgrinovskiiNode(_NodeBase):

@@ -88,10 +88,23 @@ class _Runtime(Diagnostics, Flags):
             off += pj[a]
         return v
 
+    def _plain_inputs(self) -> bool:
+        return self._noise_c is None and self._noise_eta is None
+
     def _after_step(self) -> None:
-        t = self.t
-        above = t >= self.flag_from - 1e-9 * max(1.0, self.flag_from) and \
-            bool(np.max(np.abs(self.attack_indicator), initial=0.0) > self.threshold)
+        self._flag(self.t, float(np.max(np.abs(self.attack_indicator), initial=0.0)))
+
+    @classmethod
+    def _after_steps(cls, members, indicators) -> None:
+        """:meth:`_after_step` of every member from the stacked indicators ``(M, nf)``."""
+        peak = np.max(np.abs(indicators), axis=1, initial=0.0)
+        for m, u in zip(members, peak.tolist()):
+            if u > m.threshold or m._above_since is not None:  # else the update leaves the flag down
+                m._flag(m.t, u)
+
+    def _flag(self, t: float, peak: float) -> None:
+        """The flag's update at time ``t`` from ``max |u_i|`` (``peak``)."""
+        above = t >= self.flag_from - 1e-9 * max(1.0, self.flag_from) and peak > self.threshold
         if above:
             if self._above_since is None:
                 self._above_since = t
@@ -104,6 +117,31 @@ class _Runtime(Diagnostics, Flags):
         """``max |u_i|`` has stayed above ``threshold`` for at least ``hold`` seconds (counted
         from ``flag_from`` at the earliest); not latched: it drops when ``|u_i|`` does."""
         return self._flagged
+
+    @classmethod
+    def _diagnostic_rows(cls, members, indicators):
+        """Every member's :meth:`diagnostics` (as ``(M,)`` rows) and :attr:`flagged` (``(M,)``
+        bool), from the stacked indicators ``(M, nf)``."""
+        M = len(members)
+        nf = members[0]._nf
+        if any(m._nf != nf for m in members):
+            return None
+        if indicators is None:
+            return {}, None  # only asked whether
+        t = members[0].t
+        f, fc = np.zeros((M, nf)), np.zeros((M, nf))
+        for i, m in enumerate(members):
+            if m._f_obs is not None:
+                f[i] = m._f_obs(t)
+            if m._f_det is not None:
+                fc[i] = m._f_det(t)
+        flags = np.array([m._flagged for m in members])
+        if nf == 1:
+            return {"u": indicators[:, 0], "f": f[:, 0], "f_c": fc[:, 0]}, flags
+        out = {}
+        for name, arr in (("u", indicators), ("f", f), ("f_c", fc)):
+            out.update({f"{name}{c + 1}": arr[:, c] for c in range(nf)})
+        return out, flags
 
     def diagnostics(self) -> dict[str, float]:
         """``u`` (the attack indicator (19)), ``f`` and ``f_c`` (the attacker's inputs on the
