@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from .columns import column, repeated_strings
 from .monitor import Monitor
 from .rounds import regular_mask
 
@@ -64,14 +65,14 @@ class MetricsStream:
         N, B = self.exp.N, len(mon.block_names)
         c = len(rows)
         k = np.repeat(rows, N * B)
-        batch = pa.record_batch([
-            pa.array(k), pa.array(k * self.exp.dt),
-            pa.array(np.tile(np.repeat(np.array(self.exp.agent_ids, dtype=np.int32), B), c)),
-            pa.array(np.tile(np.repeat(self.regular, B), c)),
-            pa.array(np.tile(np.array(mon.block_names, dtype=object), c * N).tolist(), type=pa.string()),
-            pa.array(mon.error_2[rows].reshape(-1)), pa.array(mon.error_inf[rows].reshape(-1)),
-            pa.array(mon.relative_error_2[rows].reshape(-1)),
-            pa.array(np.repeat(mon.truth_norm[rows], N, axis=0).reshape(-1)),
+        batch = pa.RecordBatch.from_arrays([
+            column(k), column(k * self.exp.dt),
+            column(np.tile(np.repeat(np.array(self.exp.agent_ids, dtype=np.int32), B), c)),
+            column(np.tile(np.repeat(self.regular.astype(bool), B), c)),
+            repeated_strings(mon.block_names, np.tile(np.arange(B, dtype=np.int32), c * N)),
+            column(mon.error_2[rows]), column(mon.error_inf[rows]),
+            column(mon.relative_error_2[rows]),
+            column(np.repeat(mon.truth_norm[rows], N, axis=0)),
         ], schema=SCHEMA)
         self._writer.write_batch(batch)
 
@@ -93,7 +94,7 @@ def read_partial(run_dir: str | Path) -> pa.Table | None:
     if not paths:
         return None
     batches = []
-    for seg, path in enumerate(paths):
+    for path in paths:
         try:
             reader = pa.ipc.open_stream(pa.memory_map(str(path)) if path.stat().st_size else pa.BufferReader(b""))
         except (pa.ArrowInvalid, OSError):
@@ -105,14 +106,22 @@ def read_partial(run_dir: str | Path) -> pa.Table | None:
                 break
             except (pa.ArrowInvalid, OSError):
                 break  # a torn last batch
-            batches.append(b.append_column("segment", pa.array(np.full(b.num_rows, seg, dtype=np.int32))))
+            batches.append(b)
     if not batches:
         return pa.Table.from_batches([], schema=SCHEMA)
     table = pa.Table.from_batches(batches)
-    # keep, for each (k, agent, block), the row of the latest segment
-    df = table.to_pandas()
-    df = df.sort_values(["k", "segment"], kind="stable").drop_duplicates(["k", "agent", "block"], keep="last")
-    return pa.Table.from_pandas(df.drop(columns="segment"), schema=SCHEMA, preserve_index=False)
+    # keep, for each (k, agent, block), the row of the latest segment (the last one written):
+    # in the order (k, agent, block, position in the streams), the last of each equal key
+    k = table.column("k").to_numpy()
+    agent = table.column("agent").to_numpy()
+    _, block = np.unique(table.column("block").to_numpy(zero_copy_only=False).astype(str), return_inverse=True)
+    order = np.lexsort((np.arange(len(k)), block, agent, k))
+    keys = np.stack([k[order], agent[order], block[order]])
+    last = np.ones(len(order), dtype=bool)
+    last[:-1] = (keys[:, 1:] != keys[:, :-1]).any(axis=0)
+    kept = order[last]
+    kept = kept[np.lexsort((kept, k[kept]))]  # by round, then as written
+    return table.take(column(kept.astype(np.int64)))
 
 
 def load_into(mon: Monitor, table: pa.Table) -> None:

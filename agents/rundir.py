@@ -17,6 +17,8 @@ import pyarrow.parquet as pq
 
 from scenarios.build import Experiment
 
+from .columns import column, strings
+from .columns import table as arrow_table
 from .monitor import Monitor
 
 PACKAGES = ("resilient-state-estimation", "numpy", "scipy", "pydantic", "pyarrow", "eclipse-zenoh", "rerun-sdk", "msgpack")
@@ -86,8 +88,8 @@ def metrics_table(exp: Experiment, mon: Monitor, regular: np.ndarray) -> pa.Tabl
     agent = np.tile(np.repeat(np.array(exp.agent_ids, dtype=np.int32), B), K)
     reg = np.tile(np.repeat(regular.astype(bool), B), K)
     block_idx = np.tile(np.arange(B, dtype=np.int32), K * N)
-    block = pa.DictionaryArray.from_arrays(pa.array(block_idx), pa.array(mon.block_names))
-    table = pa.table({
+    block = pa.DictionaryArray.from_arrays(column(block_idx), strings(mon.block_names))
+    table = arrow_table({
         "k": k,
         "t": k * exp.dt,
         "agent": agent,
@@ -124,8 +126,8 @@ def write_traces(run_dir: Path, exp: Experiment, mon: Monitor) -> None:
             cols["value"].append(tr[:, s])
     if not cols["k"]:
         return
-    table = pa.table({c: (np.concatenate(v) if c in ("k", "t", "value") else pa.array(np.concatenate(v).tolist()))
-                      for c, v in cols.items()})
+    table = arrow_table({c: (np.concatenate(v) if c in ("k", "t", "value") else strings(np.concatenate(v)))
+                         for c, v in cols.items()})
     pq.write_table(table, run_dir / "traces.parquet", compression="zstd")
 
 
@@ -140,12 +142,12 @@ def write_diagnostics(run_dir: Path, exp: Experiment, mon: Monitor) -> None:
     cols: dict[str, Any] = {"k": k, "t": k * exp.dt, "agent": np.tile(np.array(exp.agent_ids, dtype=np.int32), K)}
     if mon.flags is not None:
         f = mon.flags[:K].reshape(-1)
-        cols["flagged"] = pa.array(f == 1.0, mask=np.isnan(f))
+        cols["flagged"] = column(f == 1.0, mask=np.isnan(f))
     for name, arr in mon.diagnostics.items():
         if name in cols:
             name = f"diag_{name}"
         cols[name] = arr[:K].reshape(-1)
-    pq.write_table(pa.table(cols), run_dir / "diagnostics.parquet", compression="zstd")
+    pq.write_table(arrow_table(cols), run_dir / "diagnostics.parquet", compression="zstd")
 
 
 def write_design(run_dir: Path, exp: Experiment) -> None:
