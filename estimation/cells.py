@@ -1,7 +1,9 @@
 """The named plants of Mitra et al. 2019, Section 8: ``cells`` and ``diffusion``.
 
-Both are ``K`` decoupled cells with ``R = 10`` sensing locations each, returned as plain
-matrices (:class:`CellModel`).
+Both are ``K`` decoupled cells with ``R = 10`` sensing locations each (:class:`CellModel`).
+The block-diagonal ``A`` is a ``scipy.sparse`` CSR array (a 1,024-agent team's dense
+``5120 x 5120`` ``A`` would be 200 MB for 100 kB of non-zeros); ``A.toarray()`` is the
+dense matrix.
 
 Map (the paper gives no dimensions): each cell is a square of side ``cell_size = 30``
 distance units; the cells sit on a grid of ``ceil(sqrt(K))`` columns, numbered in
@@ -31,6 +33,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
 
 from .errors import DesignError
 
@@ -45,7 +48,7 @@ class CellModel:
 
     Attributes
     ----------
-    A : (n, n) array
+    A : (n, n) scipy.sparse CSR array  block diagonal, one block per cell
     positions : (N, 2) array  2-D position of every location
     loc_C : tuple of (1, n) arrays  measurement row(s) of every location (eq. (2))
     loc_cell : (N,) int array  cell (0-based) of every location
@@ -56,7 +59,7 @@ class CellModel:
     cell_size : float  side of a cell's square
     """
 
-    A: np.ndarray
+    A: sparse.csr_array
     positions: np.ndarray
     loc_C: tuple[np.ndarray, ...]
     loc_cell: np.ndarray
@@ -105,12 +108,13 @@ def _assemble(blocks_A, positions, rows, x0_cells, origins, cell_size) -> CellMo
     K = len(blocks_A)
     sizes = [b.shape[0] for b in blocks_A]
     n = sum(sizes)
-    A = np.zeros((n, n))
+    A = sparse.csr_array(sparse.block_diag([np.asarray(b, dtype=float) for b in blocks_A], format="csr"))
+    A.eliminate_zeros()
+    A.sort_indices()
     state_block = np.repeat(np.arange(K), sizes)
     offs = np.concatenate([[0], np.cumsum(sizes)])
     loc_C, loc_cell = [], []
     for c in range(K):
-        A[offs[c] : offs[c + 1], offs[c] : offs[c + 1]] = blocks_A[c]
         for row in rows[c]:
             full = np.zeros((1, n))
             full[0, offs[c] : offs[c + 1]] = row
@@ -119,7 +123,7 @@ def _assemble(blocks_A, positions, rows, x0_cells, origins, cell_size) -> CellMo
             loc_cell.append(c)
     x0 = np.concatenate(x0_cells)
     pos = np.vstack(positions)
-    for arr in (A, pos, x0, state_block, origins):
+    for arr in (A.data, A.indices, A.indptr, pos, x0, state_block, origins):
         arr.setflags(write=False)
     lc = np.asarray(loc_cell, dtype=int)
     lc.setflags(write=False)
