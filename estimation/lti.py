@@ -238,11 +238,11 @@ def _gather_blocks(A: Any, idx: np.ndarray) -> np.ndarray:
     return out
 
 
-def decoupled_groups(A: np.ndarray) -> list[np.ndarray]:
+def decoupled_groups(A: Any) -> list[np.ndarray]:
     """The decoupled blocks of a square ``A`` (connected components of its sparsity
     pattern), grouped by size: one ``(blocks, size)`` int array of state indices per size.
 
-    Only a sparse ``A`` is split (at most ``n^2 / 16`` non-zeros: the index arrays then stay
+    ``A`` is a numpy or a ``scipy.sparse`` array. Only a sparse ``A`` is split (at most ``n^2 / 16`` non-zeros: the index arrays then stay
     below an eighth of ``A``'s memory); a denser one is one block, ``[arange(n)[None]]``.
     """
     from scipy.sparse import coo_matrix, issparse

@@ -31,6 +31,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -154,7 +155,7 @@ class ModalForm:
         return C[:, cols] @ self.v_rows(cols)
 
 
-def decoupled_blocks(A: np.ndarray) -> tuple[np.ndarray, ...]:
+def decoupled_blocks(A: Any) -> tuple[np.ndarray, ...]:
     """Connected components of the sparsity pattern of ``A`` (exact zeros decouple).
 
     Returns the components as sorted state-index arrays, ordered by smallest index.
@@ -208,7 +209,7 @@ def _block_eig(Ab: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
     return lam, vec * sign
 
 
-def modal_form(A: np.ndarray, *, blocks: Sequence[Sequence[int]] | None = None) -> ModalForm:
+def modal_form(A: Any, *, blocks: Sequence[Sequence[int]] | None = None) -> ModalForm:
     """Modal coordinates of ``A`` (eq. (4)), computed per decoupled block.
 
     Parameters
@@ -232,6 +233,7 @@ def modal_form(A: np.ndarray, *, blocks: Sequence[Sequence[int]] | None = None) 
     """
     from scipy import sparse
 
+    entries: np.ndarray
     if sparse.issparse(A):  # a block-diagonal plant kept sparse: only its blocks are made dense
         A = sparse.csr_array(A, dtype=float)
         entries = A.data

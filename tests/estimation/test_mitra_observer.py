@@ -86,7 +86,7 @@ def test_diffusion_model():
     np.testing.assert_allclose(lam[:, 0], 1.0, atol=1e-12)  # one marginal mode per cell
     assert np.all(lam[:, 1:] < 1.0) and np.all(lam > 0)
     for c in range(4):
-        blk = m.A.toarray()[c * 10 : (c + 1) * 10, c * 10 : (c + 1) * 10]
+        blk = m.A[c * 10 : (c + 1) * 10, c * 10 : (c + 1) * 10]
         L = (np.eye(10) - blk) / 0.01
         pos = m.positions[c * 10 : (c + 1) * 10]
         d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
