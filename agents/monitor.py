@@ -69,7 +69,9 @@ def read_diagnostics(estimator: Any) -> tuple[dict[str, float] | None, bool | No
 
 
 class Monitor:
-    """Collects per-round errors into dense arrays ``(rounds, agents, blocks)``.
+    """Collects per-round errors into dense arrays ``(rounds, agents, blocks)``
+    (``error_2``, ``error_inf``; ``relative_error_2`` is derived from ``error_2`` and
+    ``truth_norm`` when read).
 
     Estimates are buffered for a chunk of rounds (at most ~64 MB) and the norms computed
     for the whole chunk at once, which keeps the per-round cost of the monitor small.

@@ -34,11 +34,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import sparse
 
 from .errors import DesignError
+
+if TYPE_CHECKING:  # scipy is imported when a plant is built, not with the package
+    from scipy import sparse
 
 #: initial state of the states of cells 1..4 (Section 8.1), cycled for more cells
 PAPER_X0 = (0.07, 0.05, 0.03, 0.01)
@@ -114,6 +117,8 @@ def _assemble(blocks_A, positions, rows, x0_cells, origins, cell_size, *, sparse
     offs = np.concatenate([[0], np.cumsum(sizes)])
     parts: tuple[np.ndarray, ...]
     if sparse_A:
+        from scipy import sparse
+
         A = sparse.csr_array(sparse.block_diag([np.asarray(b, dtype=float) for b in blocks_A], format="csr"))
         A.eliminate_zeros()
         A.sort_indices()
