@@ -77,6 +77,10 @@ def test_cells_model():
     assert np.array_equal(cells(4, np.random.default_rng(0)).positions, m.positions)
     mf = modal_form(m.A, blocks=m.blocks)
     np.testing.assert_array_equal(mf.V, np.eye(80))
+    x, D = np.random.default_rng(2).normal(size=80), m.A.toarray()
+    for _ in range(50):  # the plant's sparse step is the dense product bit for bit
+        x, xd = m.A @ x, D @ x
+        np.testing.assert_array_equal(x, xd)
 
 
 def test_diffusion_model():
