@@ -29,6 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from estimation.lti import dense
+
 from .monitor import plot_rows
 
 MAP_FRAMES = 2000
@@ -101,7 +103,7 @@ class Dashboard:
             rr.spawn(port=port, connect=False)
             sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
         # relative errors are logged (and shown first) for unstable plants
-        self._unstable = exp.n <= 2000 and bool(np.max(np.abs(np.linalg.eigvals(exp.Ad))) > 1.0 + 1e-9)
+        self._unstable = exp.n <= 2000 and bool(np.max(np.abs(np.linalg.eigvals(dense(exp.Ad)))) > 1.0 + 1e-9)
         blueprint = self.blueprint(rrb)
         if sinks:
             self.rec.set_sinks(*sinks, default_blueprint=blueprint)
@@ -195,14 +197,15 @@ class Dashboard:
         times = [rr.TimeColumn("k", sequence=rows), rr.TimeColumn("t", duration=rows * exp.dt)]
         N = exp.N
         with np.errstate(divide="ignore", invalid="ignore"):
+            rel_rows = mon.relative_rows(rows) if self._unstable else None
             for b, name in enumerate(mon.block_names):
                 # one entity per block, one series per agent (instance i = agent index i)
                 e2 = np.log10(mon.error_2[rows, :, b])
                 e2[~np.isfinite(e2)] = np.nan
                 rec.send_columns(f"errors/{name}", indexes=times,
                                  columns=rr.Scalars.columns(scalars=e2.reshape(-1)).partition([N] * len(rows)))
-                if self._unstable:
-                    rel = np.log10(mon.relative_error_2[rows, :, b])
+                if rel_rows is not None:
+                    rel = np.log10(rel_rows[:, :, b])
                     rel[~np.isfinite(rel)] = np.nan
                     rec.send_columns(f"relative_errors/{name}", indexes=times,
                                      columns=rr.Scalars.columns(scalars=rel.reshape(-1)).partition([N] * len(rows)))

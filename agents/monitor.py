@@ -69,13 +69,16 @@ def read_diagnostics(estimator: Any) -> tuple[dict[str, float] | None, bool | No
 
 
 class Monitor:
-    """Collects per-round errors into dense arrays ``(rounds, agents, blocks)``.
+    """Collects per-round errors into dense arrays ``(rounds, agents, blocks)``
+    (``error_2``, ``error_inf``; ``relative_error_2`` is derived from ``error_2`` and
+    ``truth_norm`` when read).
 
     Estimates are buffered for a chunk of rounds (at most ~64 MB) and the norms computed
     for the whole chunk at once, which keeps the per-round cost of the monitor small.
     """
 
     CHUNK_BYTES = 64 * 2**20
+    SLICE_BYTES = 4 * 2**20
 
     def __init__(self, exp: Experiment) -> None:
         self.exp = exp
@@ -90,11 +93,11 @@ class Monitor:
         shape = (K, exp.N, len(self._blocks))
         self.error_2 = np.full(shape, np.nan)
         self.error_inf = np.full(shape, np.nan)
-        self.relative_error_2 = np.full(shape, np.nan)
         self.truth_norm = np.full((K, len(self._blocks)), np.nan)
         self.last_round = -1
         self._chunk = max(1, min(1024, K, self.CHUNK_BYTES // max(1, exp.N * exp.n * 8)))
-        self._est = np.full((self._chunk, exp.N, exp.n), np.nan)
+        # a chunk of one round (a large team) is not buffered: record() computes it at once
+        self._est = np.full((self._chunk, exp.N, exp.n), np.nan) if self._chunk > 1 else None
         self._x = np.zeros((self._chunk, exp.n))
         self._rows: list[int] = []
         #: called as ``on_chunk(rows, x (c, n), estimates (c, N, n))`` after each flush;
@@ -145,13 +148,18 @@ class Monitor:
     def record(self, k: int, x: np.ndarray, estimates: np.ndarray, present: np.ndarray | None = None) -> None:
         """Record round ``k``: ``x`` (n,), ``estimates`` (N, n); ``present`` (N,) bool mask
         (absent agents are NaN)."""
+        self.last_round = max(self.last_round, k)
+        if self._est is None:  # one round per chunk: its norms now, from the caller's array
+            self._flushed_at = time.monotonic()
+            est = estimates if present is None else np.where(present[:, None], estimates, np.nan)
+            self._compute(np.array([k]), np.asarray(x, dtype=float)[None], est[None])
+            return
         r = len(self._rows)
         self._est[r] = estimates
         if present is not None:
             self._est[r, ~present] = np.nan
         self._x[r] = x
         self._rows.append(k)
-        self.last_round = max(self.last_round, k)
         if len(self._rows) == self._chunk or (
                 self.on_chunk is not None and time.monotonic() - self._flushed_at >= self.flush_interval):
             self.flush()
@@ -159,41 +167,67 @@ class Monitor:
     def flush(self) -> None:
         """Compute the norms of the buffered rounds."""
         self._flushed_at = time.monotonic()
-        if not self._rows:
+        if not self._rows or self._est is None:
             return
-        rows = np.array(self._rows)
-        c = len(rows)
-        E = self._est[:c] - self._x[:c, None, :]
-        for b, idx in enumerate(self._blocks):
-            M = self._maps[b]
-            if M is not None:
-                Eb, xb = E @ M.T, self._x[:c] @ M.T
-            else:
-                Eb = E if self._whole[b] else E[:, :, idx]
-                xb = self._x[:c] if self._whole[b] else self._x[:c, idx]
-            e2 = np.sqrt(np.einsum("kij,kij->ki", Eb, Eb))
-            with np.errstate(invalid="ignore"):
-                einf = np.max(np.abs(Eb), axis=2)
-            xn = np.sqrt(np.einsum("kj,kj->k", xb, xb))
-            self.error_2[rows, :, b] = e2
-            self.error_inf[rows, :, b] = einf
-            with np.errstate(divide="ignore", invalid="ignore"):
-                rel = e2 / xn[:, None]
-            rel[(xn[:, None] == 0) & (e2 == 0)] = 0.0
-            self.relative_error_2[rows, :, b] = rel
-            self.truth_norm[rows, b] = xn
-        for name, row, agents in self.plots:
-            tr = self.traces[name]
-            tr[rows, 0] = self._x[:c] @ row
-            tr[rows, 1:] = self._est[:c][:, [self.exp.agent_ids.index(a) for a in agents]] @ row
-        if self.on_chunk is not None:
-            self.on_chunk(rows, self._x[:c], self._est[:c])
+        c = len(self._rows)
+        self._compute(np.array(self._rows), self._x[:c], self._est[:c])
         self._est[:c] = np.nan
         self._rows.clear()
 
+    def _compute(self, rows: np.ndarray, xs: np.ndarray, ests: np.ndarray) -> None:
+        """The norms of rounds ``rows``: true states ``xs`` (c, n), estimates ``ests`` (c, N, n).
+
+        The errors are formed for a slice of agents at a time (at most ``SLICE_BYTES``: a
+        large team's ``(c, N, n)`` error array would be as large as the estimates); every
+        agent's norms are the same operations on the same values whatever the slice."""
+        c, N = xs.shape[0], ests.shape[1]
+        xbs = []
+        for b, idx in enumerate(self._blocks):
+            M = self._maps[b]
+            xb = xs @ M.T if M is not None else xs if self._whole[b] else xs[:, idx]
+            xn = np.sqrt(np.einsum("kj,kj->k", xb, xb))
+            self.truth_norm[rows, b] = xn
+            xbs.append(xn)
+        step = max(1, self.SLICE_BYTES // max(1, c * xs.shape[1] * 8))
+        for a0 in range(0, N, step):
+            agents = slice(a0, min(N, a0 + step))
+            E = ests[:, agents] - xs[:, None, :]
+            for b, idx in enumerate(self._blocks):
+                M = self._maps[b]
+                if M is not None:
+                    Eb = E @ M.T
+                else:
+                    Eb = E if self._whole[b] else E[:, :, idx]
+                e2 = np.sqrt(np.einsum("kij,kij->ki", Eb, Eb))
+                with np.errstate(invalid="ignore"):
+                    einf = np.max(np.abs(Eb), axis=2)
+                self.error_2[rows, agents, b] = e2
+                self.error_inf[rows, agents, b] = einf
+        for name, row, agents_of in self.plots:
+            tr = self.traces[name]
+            tr[rows, 0] = xs @ row
+            tr[rows, 1:] = ests[:, [self.exp.agent_ids.index(a) for a in agents_of]] @ row
+        if self.on_chunk is not None:
+            self.on_chunk(rows, xs, ests)
+
+    @property
+    def relative_error_2(self) -> np.ndarray:
+        """``(rounds, agents, blocks)``: ``error_2 / |x_b|`` (0 where both are 0), computed
+        from ``error_2`` and ``truth_norm`` when read (a new array; not stored: a large
+        team's metric arrays are a large part of its memory)."""
+        return self.relative_rows(slice(None))
+
+    def relative_rows(self, rows: Any) -> np.ndarray:
+        """:attr:`relative_error_2` of the rounds ``rows`` only (an index or slice)."""
+        e2, xn = self.error_2[rows], self.truth_norm[rows][..., None, :]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = e2 / xn
+        rel[(xn == 0) & (e2 == 0)] = 0.0
+        return rel
+
     def current_worst(self) -> float:
         """Worst infinity-norm error of the last recorded round (for progress bars)."""
-        if self._rows:
+        if self._rows and self._est is not None:
             r = len(self._rows) - 1
             with np.errstate(invalid="ignore"):
                 v = np.abs(self._est[r] - self._x[r])
@@ -208,4 +242,6 @@ class Monitor:
         if name == "error_ratio":
             with np.errstate(divide="ignore", invalid="ignore"):
                 return self.error_2 / self.error_2[:1]
-        return {"error_2": self.error_2, "error_inf": self.error_inf, "relative_error_2": self.relative_error_2}[name]
+        if name == "relative_error_2":
+            return self.relative_error_2
+        return {"error_2": self.error_2, "error_inf": self.error_inf}[name]

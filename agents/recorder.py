@@ -71,7 +71,7 @@ class MetricsStream:
             column(np.tile(np.repeat(self.regular.astype(bool), B), c)),
             repeated_strings(mon.block_names, np.tile(np.arange(B, dtype=np.int32), c * N)),
             column(mon.error_2[rows]), column(mon.error_inf[rows]),
-            column(mon.relative_error_2[rows]),
+            column(mon.relative_rows(rows)),
             column(np.repeat(mon.truth_norm[rows], N, axis=0)),
         ], schema=SCHEMA)
         self._writer.write_batch(batch)
@@ -138,7 +138,7 @@ def load_into(mon: Monitor, table: pa.Table) -> None:
     b = np.array([idx_b.get(v, -1) for v in table.column("block").to_pylist()])
     keep &= (a >= 0) & (b >= 0)
     k, a, b = k[keep], a[keep], b[keep]
-    for name in ("error_2", "error_inf", "relative_error_2"):
+    for name in ("error_2", "error_inf"):  # relative_error_2 follows from error_2 and truth_norm
         getattr(mon, name)[k, a, b] = table.column(name).to_numpy()[keep]
     mon.truth_norm[k, b] = table.column("truth_norm").to_numpy()[keep]
     if k.size:

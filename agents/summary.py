@@ -164,17 +164,18 @@ def summarise(exp: Experiment, mon: Monitor, regular: np.ndarray, links: dict[st
     win = _rounds(exp, "window", last)
     thr = exp.scenario.output.convergence_threshold
     agents: dict[str, Any] = {}
+    data = {m: mon.metric(m)[: last + 1] for m in METRICS}  # relative_error_2 is computed when read: once
     for i, aid in enumerate(exp.agent_ids):
         blocks = {}
         for b, name in enumerate(mon.block_names):
             rec: dict[str, Any] = {}
             for m in METRICS:
-                series = mon.metric(m)[: last + 1, i, b]
+                series = data[m][:, i, b]
                 rec[f"final_{m}"] = float(series[last])
                 rec[f"window_max_{m}"] = _nanmax(series[win])
             grows = _nanmax(mon.truth_norm[: last + 1, b]) > 1e3
             conv_metric = "relative_error_2" if grows else "error_inf"
-            rec["convergence_round"] = convergence_round(mon.metric(conv_metric)[: last + 1, i, b], thr)
+            rec["convergence_round"] = convergence_round(data[conv_metric][:, i, b], thr)
             blocks[name] = rec
         agents[str(aid)] = {"regular": bool(regular[i]), "blocks": blocks}
     worst: dict[str, Any] = {}

@@ -1,7 +1,12 @@
 """The named plants of Mitra et al. 2019, Section 8: ``cells`` and ``diffusion``.
 
-Both are ``K`` decoupled cells with ``R = 10`` sensing locations each, returned as plain
-matrices (:class:`CellModel`).
+Both are ``K`` decoupled cells with ``R = 10`` sensing locations each (:class:`CellModel`).
+The diagonal ``A`` of ``cells`` is a ``scipy.sparse`` CSR array (a 1,024-agent team's dense
+``5120 x 5120`` ``A`` would be 200 MB for 40 kB of non-zeros); ``A.toarray()`` is the
+dense matrix. Its product with a state is the dense product bit for bit (one non-zero
+per row). The ``diffusion`` cells' ``A`` stays a dense array: a row there has several
+non-zeros, which a sparse product adds in another order than the dense one (the plant's
+trajectory would differ in the last bits, and the paper scenario's estimates with it).
 
 Map (the paper gives no dimensions): each cell is a square of side ``cell_size = 30``
 distance units; the cells sit on a grid of ``ceil(sqrt(K))`` columns, numbered in
@@ -29,10 +34,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import DesignError
+
+if TYPE_CHECKING:  # scipy is imported when a plant is built, not with the package
+    from scipy import sparse
 
 #: initial state of the states of cells 1..4 (Section 8.1), cycled for more cells
 PAPER_X0 = (0.07, 0.05, 0.03, 0.01)
@@ -45,7 +54,7 @@ class CellModel:
 
     Attributes
     ----------
-    A : (n, n) array
+    A : (n, n) array  block diagonal, one block per cell (``cells``: a scipy.sparse CSR array)
     positions : (N, 2) array  2-D position of every location
     loc_C : tuple of (1, n) arrays  measurement row(s) of every location (eq. (2))
     loc_cell : (N,) int array  cell (0-based) of every location
@@ -56,7 +65,7 @@ class CellModel:
     cell_size : float  side of a cell's square
     """
 
-    A: np.ndarray
+    A: sparse.csr_array | np.ndarray
     positions: np.ndarray
     loc_C: tuple[np.ndarray, ...]
     loc_cell: np.ndarray
@@ -101,16 +110,27 @@ def _check(K: int, rng: np.random.Generator, cell_size: float) -> None:
         raise DesignError(f"cell_size must be > 0, got {cell_size}")
 
 
-def _assemble(blocks_A, positions, rows, x0_cells, origins, cell_size) -> CellModel:
+def _assemble(blocks_A, positions, rows, x0_cells, origins, cell_size, *, sparse_A: bool) -> CellModel:
     K = len(blocks_A)
     sizes = [b.shape[0] for b in blocks_A]
     n = sum(sizes)
-    A = np.zeros((n, n))
-    state_block = np.repeat(np.arange(K), sizes)
     offs = np.concatenate([[0], np.cumsum(sizes)])
+    parts: tuple[np.ndarray, ...]
+    if sparse_A:
+        from scipy import sparse
+
+        A = sparse.csr_array(sparse.block_diag([np.asarray(b, dtype=float) for b in blocks_A], format="csr"))
+        A.eliminate_zeros()
+        A.sort_indices()
+        parts = (A.data, A.indices, A.indptr)
+    else:
+        A = np.zeros((n, n))
+        for c in range(K):
+            A[offs[c] : offs[c + 1], offs[c] : offs[c + 1]] = blocks_A[c]
+        parts = (A,)
+    state_block = np.repeat(np.arange(K), sizes)
     loc_C, loc_cell = [], []
     for c in range(K):
-        A[offs[c] : offs[c + 1], offs[c] : offs[c + 1]] = blocks_A[c]
         for row in rows[c]:
             full = np.zeros((1, n))
             full[0, offs[c] : offs[c + 1]] = row
@@ -119,7 +139,7 @@ def _assemble(blocks_A, positions, rows, x0_cells, origins, cell_size) -> CellMo
             loc_cell.append(c)
     x0 = np.concatenate(x0_cells)
     pos = np.vstack(positions)
-    for arr in (A, pos, x0, state_block, origins):
+    for arr in (*parts, pos, x0, state_block, origins):
         arr.setflags(write=False)
     lc = np.asarray(loc_cell, dtype=int)
     lc.setflags(write=False)
@@ -164,7 +184,7 @@ def cells(K: int, rng: np.random.Generator, *, cell_size: float = 30.0, states: 
         rows.append(row)
     positions = [origins[c] + rng.uniform(0.0, cell_size, size=(R, 2)) for c in range(K)]
     x0 = [np.full(states, PAPER_X0[c % len(PAPER_X0)]) for c in range(K)]
-    return _assemble([np.diag(lam)] * K, positions, [rows] * K, x0, origins, cell_size)
+    return _assemble([np.diag(lam)] * K, positions, [rows] * K, x0, origins, cell_size, sparse_A=True)
 
 
 def proximity_laplacian(points: np.ndarray, *, radius: float) -> np.ndarray:
@@ -223,4 +243,4 @@ def diffusion(
     x0 = [np.full(locations, PAPER_X0[c % len(PAPER_X0)]) for c in range(K)]
     if x0_noise > 0:
         x0 = [v + x0_noise * rng.uniform(-1.0, 1.0, size=locations) for v in x0]
-    return _assemble(blocks, positions, rows, x0, origins, cell_size)
+    return _assemble(blocks, positions, rows, x0, origins, cell_size, sparse_A=False)

@@ -15,7 +15,7 @@ O(dt) in the input only (tests compare with a 10x finer step).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -178,7 +178,9 @@ def float_horizon(Ad: np.ndarray, *, x_norm: float, limit: float = FLOAT_SIGNAL_
     Ad : (n, n) array, the one-round transition matrix
     x_norm : float, > 0, a bound of the state's norm at round 0 (input effects included)
     """
-    A = np.asarray(Ad, dtype=float)
+    from scipy import sparse
+
+    A = sparse.csr_array(Ad, dtype=float) if sparse.issparse(Ad) else np.asarray(Ad, dtype=float)
     if not x_norm > 0:
         return max_rounds
     budget = np.log(limit / x_norm)
@@ -186,10 +188,10 @@ def float_horizon(Ad: np.ndarray, *, x_norm: float, limit: float = FLOAT_SIGNAL_
         return 0
     groups = decoupled_groups(A)
     if len(groups) == 1 and groups[0].shape[0] == 1:  # one coupled block: the dense product
-        As = [A]
+        As = [dense(A)]
         Ps = [np.eye(A.shape[0])]
     else:
-        As = [A[idx[:, :, None], idx[:, None, :]] for idx in groups]  # (blocks, s, s) per size s
+        As = [_gather_blocks(A, idx) for idx in groups]  # (blocks, s, s) per size s
         Ps = [np.broadcast_to(np.eye(idx.shape[1]), Ab.shape).copy() for idx, Ab in zip(groups, As)]
     log_scale = 0.0
     for k in range(1, max_rounds + 1):
@@ -212,21 +214,45 @@ def float_horizon(Ad: np.ndarray, *, x_norm: float, limit: float = FLOAT_SIGNAL_
     return max_rounds
 
 
-def decoupled_groups(A: np.ndarray) -> list[np.ndarray]:
+def dense(A: Any) -> np.ndarray:
+    """``A`` as a dense float array: a ``scipy.sparse`` plant matrix (the block-diagonal
+    ``A`` of a cell plant, :mod:`estimation.cells`) made dense, for the analyses of
+    small plants that need it (eigenvalues, matrix powers)."""
+    from scipy import sparse
+
+    return A.toarray() if sparse.issparse(A) else np.asarray(A, dtype=float)
+
+
+def _gather_blocks(A: Any, idx: np.ndarray) -> np.ndarray:
+    """The decoupled blocks ``A[idx[b]][:, idx[b]]`` stacked, ``(blocks, s, s)``; a sparse
+    ``A`` gives its non-zeros only (no dense ``(n, n)`` array)."""
+    from scipy import sparse
+
+    if not sparse.issparse(A):
+        return np.asarray(A[idx[:, :, None], idx[:, None, :]])
+    nb, s = idx.shape
+    flat = idx.reshape(-1)
+    sub = sparse.coo_array(A[flat][:, flat])  # block-diagonal in this order: block b at rows b s .. b s + s - 1
+    out = np.zeros((nb, s, s))
+    out[sub.row // s, sub.row % s, sub.col % s] = sub.data
+    return out
+
+
+def decoupled_groups(A: Any) -> list[np.ndarray]:
     """The decoupled blocks of a square ``A`` (connected components of its sparsity
     pattern), grouped by size: one ``(blocks, size)`` int array of state indices per size.
 
-    Only a sparse ``A`` is split (at most ``n^2 / 16`` non-zeros: the index arrays then stay
+    ``A`` is a numpy or a ``scipy.sparse`` array. Only a sparse ``A`` is split (at most ``n^2 / 16`` non-zeros: the index arrays then stay
     below an eighth of ``A``'s memory); a denser one is one block, ``[arange(n)[None]]``.
     """
-    n = A.shape[0]
-    whole = [np.arange(n)[None, :]]
-    if n < 2 or np.count_nonzero(A) > n * n // 16:
-        return whole
-    from scipy.sparse import coo_matrix
+    from scipy.sparse import coo_matrix, issparse
     from scipy.sparse.csgraph import connected_components
 
-    rows, cols = np.nonzero(A)
+    n = A.shape[0]
+    whole = [np.arange(n)[None, :]]
+    if n < 2 or (A.count_nonzero() if issparse(A) else np.count_nonzero(A)) > n * n // 16:
+        return whole
+    rows, cols = A.nonzero()
     ncomp, labels = connected_components(coo_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n)),
                                          directed=True, connection="weak")
     if ncomp == 1:

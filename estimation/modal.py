@@ -31,6 +31,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -154,16 +155,21 @@ class ModalForm:
         return C[:, cols] @ self.v_rows(cols)
 
 
-def decoupled_blocks(A: np.ndarray) -> tuple[np.ndarray, ...]:
+def decoupled_blocks(A: Any) -> tuple[np.ndarray, ...]:
     """Connected components of the sparsity pattern of ``A`` (exact zeros decouple).
 
     Returns the components as sorted state-index arrays, ordered by smallest index.
     """
+    from scipy import sparse
     from scipy.sparse.csgraph import connected_components
 
-    A = np.asarray(A)
-    pattern = (A != 0) | (A.T != 0)
-    ncomp, labels = connected_components(pattern.astype(np.int8), directed=False)
+    if sparse.issparse(A):
+        pattern = sparse.csr_array(A != 0, dtype=np.int8)
+        ncomp, labels = connected_components(pattern, directed=True, connection="weak")
+    else:
+        A = np.asarray(A)
+        pattern = (A != 0) | (A.T != 0)
+        ncomp, labels = connected_components(pattern.astype(np.int8), directed=False)
     comps = [np.flatnonzero(labels == c) for c in range(ncomp)]
     return tuple(sorted(comps, key=lambda c: int(c[0])))
 
@@ -203,13 +209,14 @@ def _block_eig(Ab: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
     return lam, vec * sign
 
 
-def modal_form(A: np.ndarray, *, blocks: Sequence[Sequence[int]] | None = None) -> ModalForm:
+def modal_form(A: Any, *, blocks: Sequence[Sequence[int]] | None = None) -> ModalForm:
     """Modal coordinates of ``A`` (eq. (4)), computed per decoupled block.
 
     Parameters
     ----------
-    A : (n, n) array
-        The discrete-time system matrix of eq. (1).
+    A : (n, n) array or scipy.sparse array
+        The discrete-time system matrix of eq. (1) (a sparse one is made dense block by
+        block only).
     blocks : sequence of index sequences, optional
         A partition of ``0..n-1`` into decoupled blocks. ``A`` must have no entry
         coupling two blocks. Default: the connected components of the sparsity pattern.
@@ -224,10 +231,18 @@ def modal_form(A: np.ndarray, *, blocks: Sequence[Sequence[int]] | None = None) 
         ``A`` is not square/finite, ``blocks`` is not a decoupling partition, or a block
         has complex or repeated eigenvalues (Assumption 1) or near-defective eigenvectors.
     """
-    A = np.asarray(A, dtype=float)
+    from scipy import sparse
+
+    entries: np.ndarray
+    if sparse.issparse(A):  # a block-diagonal plant kept sparse: only its blocks are made dense
+        A = sparse.csr_array(A, dtype=float)
+        entries = A.data
+    else:
+        A = np.asarray(A, dtype=float)
+        entries = A
     if A.ndim != 2 or A.shape[0] != A.shape[1]:
         raise DesignError(f"A must be square, got shape {A.shape}")
-    if not np.all(np.isfinite(A)):
+    if not np.all(np.isfinite(entries)):
         raise DesignError("A has non-finite entries")
     n = A.shape[0]
     if blocks is None:
@@ -240,7 +255,7 @@ def modal_form(A: np.ndarray, *, blocks: Sequence[Sequence[int]] | None = None) 
         label = np.empty(n, dtype=int)
         for b, idx in enumerate(parts):
             label[idx] = b
-        rows, cols = np.nonzero(A)
+        rows, cols = A.nonzero()
         cross = label[rows] != label[cols]
         if np.any(cross):
             r, c = int(rows[cross][0]), int(cols[cross][0])
@@ -251,9 +266,10 @@ def modal_form(A: np.ndarray, *, blocks: Sequence[Sequence[int]] | None = None) 
     start = 0
     for b, part in enumerate(parts):
         # a given block may itself split into decoupled pieces (e.g. a diagonal cell)
-        for sub in decoupled_blocks(A[np.ix_(part, part)]):
+        Ap = A[part][:, part].toarray() if sparse.issparse(A) else A[np.ix_(part, part)]
+        for sub in decoupled_blocks(Ap):
             idx = part[sub]
-            lb, vb = _block_eig(A[np.ix_(idx, idx)], where=f"block {b} (states {part[0]}..{part[-1]})")
+            lb, vb = _block_eig(Ap[np.ix_(sub, sub)], where=f"block {b} (states {part[0]}..{part[-1]})")
             modes = np.arange(start, start + idx.size)
             lam[modes] = lb
             wb = np.linalg.inv(vb)

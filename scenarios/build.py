@@ -19,7 +19,7 @@ import numpy as np
 from estimation import graphs
 from estimation.attacks import SensorAttackSignal
 from estimation.errors import DesignError, ScenarioError
-from estimation.lti import FLOAT_SIGNAL_LIMIT, ContinuousLTI, float_horizon, three_inertia, zoh
+from estimation.lti import FLOAT_SIGNAL_LIMIT, ContinuousLTI, dense, float_horizon, three_inertia, zoh
 from estimation.patrols import Patrol, PatrolSchedule, cell_patrols
 from estimation.robustness import attachment_graph, cell_graph
 from estimation.signals import Signal
@@ -350,7 +350,7 @@ def _trajectory_attack(at: Any, k: int, rows: np.ndarray, C: np.ndarray, Ad: np.
                             source=source)
     if not np.all(np.isfinite(xa)):
         raise ScenarioError(f"attacks[{k}].x0_attack: entries must be finite", source=source)
-    return {"C": C[rows].copy(), "Ad": np.array(Ad, dtype=float), "d0": xa - x0, "dt": float(sc.run.dt)}
+    return {"C": C[rows].copy(), "Ad": np.array(dense(Ad), dtype=float), "d0": xa - x0, "dt": float(sc.run.dt)}
 
 
 def _ids(v: Any) -> list[int]:

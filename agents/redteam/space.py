@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from estimation.errors import ScenarioError
+from estimation.lti import dense
 
 __all__ = ["MetricSpec", "Space", "derive", "METRICS", "SENSOR_KINDS", "AGENT_KINDS", "active_components"]
 
@@ -250,7 +251,7 @@ def _modal_band(exp: Any) -> tuple[float, float]:
     if exp.discrete:
         return (0.0, nyquist)
     try:
-        w = float(np.max(np.abs(np.linalg.eigvals(np.asarray(exp.plant.A, dtype=float)).imag)))
+        w = float(np.max(np.abs(np.linalg.eigvals(dense(exp.plant.A)).imag)))
     except (AttributeError, np.linalg.LinAlgError, ValueError):
         w = 0.0
     return (0.0, min(2.0 * w, nyquist) if w > 0 else nyquist)
@@ -293,7 +294,7 @@ def derive(exp: Any, *, beyond: bool = False, metric: str | None = None, over: A
     if "trajectory" in sp.kinds:
         if exp.stepper is not None:
             raise _bad(f"redteam.kinds: 'trajectory' needs an LTI plant; model {sc.plant.model!r} has its own step", src)
-        sp.lti = {"Ad": np.asarray(exp.Ad, dtype=float), "C": np.asarray(exp.plant.C, dtype=float),
+        sp.lti = {"Ad": dense(exp.Ad), "C": np.asarray(exp.plant.C, dtype=float),
                   "x0": np.asarray(exp.x0, dtype=float), "rows": [np.asarray(r) for r in exp.bank_rows]}
     sizes = [abs(x) for a in sc.attacks if a.target == "sensor" for x in (a.value, a.amplitude, a.scale) if x]
     sp.amplitude = float(rt.amplitude if rt.amplitude is not None else (max(sizes) if sizes else 1.0))

@@ -11,6 +11,7 @@ from estimation import graphs
 from estimation.errors import DesignError, ScenarioError
 from estimation.lee_kim_shim import LeeKimShim, LKSDesign, theorem3_bound
 from estimation.lee_kim_shim import design as lks_design
+from estimation.lti import dense
 from estimation.median_solver import theorem1_bound
 from estimation.observability import redundancy_violations
 
@@ -53,7 +54,7 @@ def design(exp: "Experiment", *, check: bool = True) -> LKSDesign | None:
         raise ScenarioError("estimator.algorithm: 'lee_kim_shim' needs static agents ([[agents]] with sensors)", source=source)
     agent_C = _agent_C(exp)
     if check:
-        bad = redundancy_violations(exp.plant.A, agent_C, est.q)
+        bad = redundancy_violations(dense(exp.plant.A), agent_C, est.q)
         if bad:
             subset, dim = bad[0]
             who = ", ".join(str(exp.agent_ids[i]) for i in subset) or "(none)"
@@ -64,7 +65,7 @@ def design(exp: "Experiment", *, check: bool = True) -> LKSDesign | None:
                 source=source,
             )
     try:
-        return lks_design(exp.plant.A, exp.plant.B, agent_C, real_part=est.observer.real_part)
+        return lks_design(dense(exp.plant.A), exp.plant.B, agent_C, real_part=est.observer.real_part)
     except DesignError as exc:
         if not check:
             return None
@@ -83,7 +84,7 @@ def conditions(exp: "Experiment") -> list[Condition]:
     est = exp.scenario.estimator
     out: list[Condition] = []
     agent_C = _agent_C(exp)
-    bad = redundancy_violations(exp.plant.A, agent_C, est.q)
+    bad = redundancy_violations(dense(exp.plant.A), agent_C, est.q)
     detail = (f"every set of {exp.N - 2 * est.q} agents observes x" if not bad else
               f"{len(bad)} set(s) of {exp.N - 2 * est.q} agents do not, e.g. agents "
               + ", ".join(str(exp.agent_ids[i]) for i in bad[0][0]))
@@ -91,7 +92,7 @@ def conditions(exp: "Experiment") -> list[Condition]:
     des = exp.design
     if des is None:
         try:
-            des = lks_design(exp.plant.A, exp.plant.B, agent_C, real_part=est.observer.real_part)
+            des = lks_design(dense(exp.plant.A), exp.plant.B, agent_C, real_part=est.observer.real_part)
         except DesignError as exc:
             out.append(Condition("common basis (Assumption 4)", False, str(exc)))
             return out

@@ -31,6 +31,7 @@ from pydantic import Field, field_validator, model_validator
 from estimation.base import Diagnostics
 from estimation.dynamic_consensus import ConsensusGains, design_consensus_gains, disagreement_spectral_radius
 from estimation.errors import DesignError, ScenarioError
+from estimation.lti import dense
 from estimation.mao_tabuada import (
     SIGNAL_LIMIT,
     MaoTabuadaDesign,
@@ -149,7 +150,7 @@ def _problem(exp: "Experiment") -> tuple[np.ndarray, np.ndarray]:
                                 "exactly one scalar sensor per agent (Assumption 5): one [[sensors]] bank with one "
                                 "row of C per agent", source=source)
     C = exp.plant.C[np.array([rows[0] for rows in exp.agent_rows], dtype=int)]
-    return np.array(exp.Ad, dtype=float), C
+    return np.array(dense(exp.Ad), dtype=float), C
 
 
 def _D_argument(exp: "Experiment", A: np.ndarray, C: np.ndarray) -> np.ndarray:

@@ -18,6 +18,7 @@ import numpy as np
 from estimation.errors import DesignError, ScenarioError
 from estimation.hinf_lmi import ResilientProblem, closed_form_design
 from estimation.hinf_lmi import design as lmi_design
+from estimation.lti import dense
 from estimation.ugrinovskii import first_order_attack_model
 
 from ..helpers import matrix
@@ -96,7 +97,7 @@ def problem_of(exp: "Experiment") -> ResilientProblem:
     LapT = np.diag(Adj.T.sum(axis=1)) - Adj.T
     try:
         return ResilientProblem(
-            A=exp.plant.A, B=st.B, C=C, D=D, neighbours=neighbours,
+            A=dense(exp.plant.A), B=st.B, C=C, D=D, neighbours=neighbours,
             W={e: W for e in edges}, H={e: H for e in edges}, Hc={e: Hc for e in edges},
             Z={e: est.Z * np.eye(pW) for e in edges}, Zbar={e: est.Zbar * np.eye(pW) for e in edges},
             F=(F,) * N, Fc=(Fc,) * N, Omega=(Om,) * N, Gamma=(Ga,) * N, Upsilon=(Up,) * N,
