@@ -1,9 +1,9 @@
 """The named plants of Mitra et al. 2019, Section 8: ``cells`` and ``diffusion``.
 
 Both are ``K`` decoupled cells with ``R = 10`` sensing locations each (:class:`CellModel`).
-The diagonal ``A`` of ``cells`` is a ``scipy.sparse`` CSR array (a 1,024-agent team's dense
-``5120 x 5120`` ``A`` would be 200 MB for 40 kB of non-zeros); ``A.toarray()`` is the
-dense matrix. Its product with a state is the dense product bit for bit (one non-zero
+The diagonal ``A`` of ``cells`` is a ``scipy.sparse`` CSR array from ``SPARSE_FROM`` states
+on (a 1,024-agent team's dense ``5120 x 5120`` ``A`` would be 200 MB for 40 kB of
+non-zeros; ``A.toarray()`` is the dense matrix), a dense array below. Its product with a state is the dense product bit for bit (one non-zero
 per row). The ``diffusion`` cells' ``A`` stays a dense array: a row there has several
 non-zeros, which a sparse product adds in another order than the dense one (the plant's
 trajectory would differ in the last bits, and the paper scenario's estimates with it).
@@ -43,6 +43,10 @@ from .errors import DesignError
 if TYPE_CHECKING:  # scipy is imported when a plant is built, not with the package
     from scipy import sparse
 
+#: from this many states on, the ``cells`` plant's diagonal ``A`` is kept sparse (dense it
+#: would be at least 8 MB); below, dense, so that a small team's plant and monitor
+#: processes need not import scipy.sparse (about 18 MB each)
+SPARSE_FROM = 1024
 #: initial state of the states of cells 1..4 (Section 8.1), cycled for more cells
 PAPER_X0 = (0.07, 0.05, 0.03, 0.01)
 LOCATIONS_PER_CELL = 10
@@ -54,7 +58,7 @@ class CellModel:
 
     Attributes
     ----------
-    A : (n, n) array  block diagonal, one block per cell (``cells``: a scipy.sparse CSR array)
+    A : (n, n) array  block diagonal, one block per cell (``cells`` from ``SPARSE_FROM`` states: a scipy.sparse CSR array)
     positions : (N, 2) array  2-D position of every location
     loc_C : tuple of (1, n) arrays  measurement row(s) of every location (eq. (2))
     loc_cell : (N,) int array  cell (0-based) of every location
@@ -184,7 +188,8 @@ def cells(K: int, rng: np.random.Generator, *, cell_size: float = 30.0, states: 
         rows.append(row)
     positions = [origins[c] + rng.uniform(0.0, cell_size, size=(R, 2)) for c in range(K)]
     x0 = [np.full(states, PAPER_X0[c % len(PAPER_X0)]) for c in range(K)]
-    return _assemble([np.diag(lam)] * K, positions, [rows] * K, x0, origins, cell_size, sparse_A=True)
+    return _assemble([np.diag(lam)] * K, positions, [rows] * K, x0, origins, cell_size,
+                     sparse_A=K * states >= SPARSE_FROM)
 
 
 def proximity_laplacian(points: np.ndarray, *, radius: float) -> np.ndarray:

@@ -126,3 +126,20 @@ def test_generated_teams_of_any_size():
     from estimation.errors import ScenarioError
     with pytest.raises(ScenarioError, match="3 periods do not repeat evenly over 8 cells"):
         run("mitra_cells.toml", "plant.params.K=8", "agents.periods=[13, 14, 14]")
+
+
+def test_a_sparse_cells_plant_runs_the_team_bit_for_bit_as_the_dense_one(monkeypatch):
+    """Large teams keep the diagonal ``A`` sparse (``estimation.cells.SPARSE_FROM``): a
+    4-cell team built with the sparse ``A`` (design, horizon check, plant step) gives the
+    dense one's errors bit for bit."""
+    from scipy import sparse
+
+    import estimation.cells
+
+    ov = ("run.rounds=60", "expect=[]")
+    exp_d, dense = run("mitra_cells.toml", *ov)
+    monkeypatch.setattr(estimation.cells, "SPARSE_FROM", 0)
+    exp_s, sp = run("mitra_cells.toml", *ov)
+    assert not sparse.issparse(exp_d.plant.A) and sparse.issparse(exp_s.plant.A)
+    for name in ("error_2", "error_inf"):
+        np.testing.assert_array_equal(sp.monitor.metric(name), dense.monitor.metric(name))

@@ -63,8 +63,8 @@ def test_modal_rows_reads_only_the_measured_states():
 def test_cells_model():
     m = cells(4, np.random.default_rng(0))
     assert m.A.shape == (80, 80) and len(m.loc_C) == 40
-    assert sparse.issparse(m.A) and m.A.nnz == 80  # block diagonal, kept sparse: only the diagonal is stored
-    np.testing.assert_array_equal(m.A.toarray(), np.diag(np.tile(np.linspace(0.5, 1.2, 20), 4)))
+    assert not sparse.issparse(m.A)  # small: dense (no scipy.sparse in the plant's process)
+    np.testing.assert_array_equal(m.A, np.diag(np.tile(np.linspace(0.5, 1.2, 20), 4)))
     assert m.block_names == ("cell1", "cell2", "cell3", "cell4")
     # location r = 3 of cell 2 (1-based) measures states 5 and 6 of cell 2
     row = m.loc_C[10 + 2][0]
@@ -77,9 +77,12 @@ def test_cells_model():
     assert np.array_equal(cells(4, np.random.default_rng(0)).positions, m.positions)
     mf = modal_form(m.A, blocks=m.blocks)
     np.testing.assert_array_equal(mf.V, np.eye(80))
-    x, D = np.random.default_rng(2).normal(size=80), m.A.toarray()
+    big = cells(52, np.random.default_rng(0))  # 1,040 states: from SPARSE_FROM on, A is sparse
+    assert sparse.issparse(big.A) and big.A.nnz == 1040  # block diagonal: only the diagonal is stored
+    np.testing.assert_array_equal(big.A.toarray(), np.diag(np.tile(np.linspace(0.5, 1.2, 20), 52)))
+    x, D = np.random.default_rng(2).normal(size=1040), big.A.toarray()
     for _ in range(50):  # the plant's sparse step is the dense product bit for bit
-        x, xd = m.A @ x, D @ x
+        x, xd = big.A @ x, D @ x
         np.testing.assert_array_equal(x, xd)
 
 
