@@ -217,10 +217,9 @@ def float_horizon(Ad: np.ndarray, *, x_norm: float, limit: float = FLOAT_SIGNAL_
 def dense(A: Any) -> np.ndarray:
     """``A`` as a dense float array: a ``scipy.sparse`` plant matrix (the block-diagonal
     ``A`` of a cell plant, :mod:`estimation.cells`) made dense, for the analyses of
-    small plants that need it (eigenvalues, matrix powers)."""
-    from scipy import sparse
-
-    return A.toarray() if sparse.issparse(A) else np.asarray(A, dtype=float)
+    small plants that need it (eigenvalues, matrix powers). scipy is not imported: a process
+    without it (the monitor's image) calls this on a dense ``A``."""
+    return np.asarray(A.toarray() if hasattr(A, "toarray") else A, dtype=float)
 
 
 def _gather_blocks(A: Any, idx: np.ndarray) -> np.ndarray:

@@ -65,3 +65,18 @@ def test_a_block_diagonal_plant_gives_the_dense_horizon_block_by_block():
             expected = dense(A, 1.0, 20_000, norm)
             assert expected < 20_000
             assert float_horizon(A, x_norm=1.0, max_rounds=20_000, norm=norm) == expected
+
+
+def test_dense_needs_no_scipy_for_a_dense_matrix():
+    """The monitor's image has no scipy: its dashboard calls ``lti.dense`` on the plant's
+    (dense, small) ``A``, which must not import scipy."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['scipy'] = None\n"
+            "import numpy as np\n"
+            "from estimation.lti import dense\n"
+            "print(dense(np.diag([1, 2])).tolist())\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[[1.0, 0.0], [0.0, 2.0]]"
