@@ -10,6 +10,13 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+# the property tests draw the same examples in every run (a run is reproducible and a red CI
+# is not a new random draw); HYPOTHESIS_PROFILE=explore draws new ones
+settings.register_profile("repeatable", derandomize=True)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
