@@ -118,17 +118,7 @@ class Monitor:
                            flagged: bool | None = None) -> None:
         """Record agent index ``i``'s diagnostics and attack flag of round ``k``
         (see the module docstring; :func:`read_diagnostics` reads them off an estimator)."""
-        K = self.error_2.shape[0]
-        if values:
-            for name, v in values.items():
-                arr = self.diagnostics.get(name)
-                if arr is None:
-                    arr = self.diagnostics[name] = np.full((K, self.exp.N), np.nan)
-                arr[k, i] = v
-        if flagged is not None:
-            if self.flags is None:
-                self.flags = np.full((K, self.exp.N), np.nan)
-            self.flags[k, i] = 1.0 if flagged else 0.0
+        self.record_diagnostic_rows(k, [i], values or {}, None if flagged is None else np.array([bool(flagged)]))
 
     def record_diagnostic_rows(self, k: int, agents: Sequence[int], values: Mapping[str, np.ndarray],
                                flagged: np.ndarray | None = None) -> None:
