@@ -143,8 +143,9 @@ class MonitorProcess(Role):
                 feed.frame(when)[r, s] = True
 
     def on_alive(self, role: str, i: int, alive: bool) -> None:
+        # after_stop: the plant has stopped the run (a process that ends then has finished, not left early)
         event = {"t_wall": round(time.monotonic() - self.t0, 3), "round": self.next_k, "role": role, "id": i,
-                 "event": "join" if alive else "leave"}
+                 "event": "join" if alive else "leave", "after_stop": self.stop_round is not None}
         self.membership.append(event)
         label = role if role != "agent" else f"agent {i}"
         log.info("monitor: %s %s (round %d)", label, "joined" if alive else "left", self.next_k)

@@ -19,9 +19,10 @@ attacked agent 1 reached 0.237 to 0.246 with agent 3 cut and 0.28 to 0.30 with a
 and 5 cut, against 0.2165 without a fault); the test prints those peaks.
 
 Accuracy in realtime needs a machine that keeps the 100 Hz rate: a measurement or an
-estimate a process cannot take in time is dropped for it alone, so on an overloaded machine
-agents skip rounds and their errors grow with nothing wrong in the code (load average 60
-on two cores, measured: 0.19 at t = 10, agent 1 at 0.81 over [22, 24]). Each case therefore
+estimate a process cannot take in time is dropped for it alone, so on a loaded machine
+agents skip rounds and their errors grow with nothing wrong in the code (the attacked agent
+1 at 0.25 over [22, 24] when the team reported 86 to 94% of its rounds; load average 60 on
+two cores: 0.19 at t = 10, agent 1 at 0.81). Each case therefore
 measures the share of rounds every agent reported before the fault and over the window;
 the accuracy bounds are asserted when it is at least ``KEPT_UP``, otherwise the case skips its accuracy part
 with that figure (the fault-tolerance checks, and ``BOUND_LOADED`` for every agent over the
@@ -71,9 +72,13 @@ BOUND_T10, BOUND_ATTACK = 0.01, 0.25  # the scenario's [[expect]] bounds
 # 0.078 to 0.092 and 0.153 to 0.173 (agents 2 to 5, on a loaded machine)
 BOUND_END = {1: BOUND_ATTACK, 2: 0.05, 3: 0.1, 4: BOUND_ATTACK, 5: BOUND_ATTACK}
 # the accuracy checks need every agent to have reported this share of the rounds before the
-# fault and over the window (a quiet machine: 99.8 to 100%; load average 40 to 50 on two
-# cores: 91 to 98% before the fault, and the bounds still held; at load 60 agent 1 reached 0.81)
-KEPT_UP = 0.9
+# fault and over the window. The attacked agent 1's error over [22, 24] grows steadily with
+# the share of rounds the team skips (it leans on its neighbours' estimates): a quiet machine
+# keeps 98 to 100% and agent 1 stays at 0.217 to 0.224; with other work on the two cores,
+# 86 to 94% gave 0.250 to 0.253 (at the scenario's bound 0.25, no margin left), 79 to 80% gave
+# 0.272 to 0.281, and at load 60 agent 1 reached 0.81. Below this share the case reports the
+# figures and skips its accuracy part
+KEPT_UP = 0.97
 # the bound over [22, 24] asserted also when the machine did not keep up (see _fault_case)
 BOUND_LOADED = 1.5
 
@@ -249,8 +254,11 @@ def _check_run(team: Team, faulty: tuple[int, ...], k_down: int, k_up: int) -> d
     # the team runs after healing (a stalled team misses nearly every row; a loaded machine
     # missed 17%: the accuracy checks below need at most 10% per agent)
     assert missing_end <= 0.5, f"{missing_end:.0%} of the rows over the window are missing"
-    members = [(m["id"], m["event"]) for m in summary["membership"] if m["role"] == "agent" and m["id"] in faulty]
     # a 3 s outage is shorter than Zenoh's 10 s lease: the sessions survive, nobody leaves
+    # before the end of the run (the monitor can still be collecting the final counters when
+    # an agent that is done exits: that leave comes after the plant's stop)
+    members = [(m["id"], m["event"]) for m in summary["membership"]
+               if m["role"] == "agent" and m["id"] in faulty and not m["after_stop"]]
     assert sorted(members) == [(a, "join") for a in faulty], members
     fig = {"back_at": back, "others_peak_fault_to_window": dict(zip([a + 1 for a in oi], np.round(others_peak, 4).tolist())),
            "at_10": [float(f"{v:.3g}") for v in E[i10]], "worst_end": [float(f"{v:.3g}") for v in worst_end],
