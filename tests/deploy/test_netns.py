@@ -282,8 +282,12 @@ def _fault_case(net: Net, tmp_path: Path, name: str, cut: Any, heal: Any, faulty
     fig.update(outage_s=round(t_up - t_down, 2), k_down=k_down, k_up=k_up, wall_s=round(team.wall_s, 1),
                back_after_s={a: round(v - k_up * DT, 2) for a, v in fig["back_at"].items()})
     print(f"\n{name}: {fig}")
-    # the faulty agents back within 3 s of the healing (measured: 0.3 to 0.5 s)
-    assert max(fig["back_after_s"].values()) <= 3.0, fig["back_after_s"]
+    # the faulty agents back by themselves soon after the healing. TCP resends what the cut
+    # lost with a doubling timeout (about 0.2, 0.6, 1.4, 3.0, 6.2 s after the loss), so a
+    # link healed just after a resend waits for the next one: up to about the outage plus one
+    # timeout (measured: 0.3 to 0.5 s on a quiet machine, 4.15 s after a 3.13 s outage at load
+    # average 27); the bound adds 3 s to the outage for a loaded machine's longer timeouts
+    assert max(fig["back_after_s"].values()) <= fig["outage_s"] + 3.0, fig["back_after_s"]
     # whatever the load: no agent far off (an overloaded machine's worst was 0.81, agent 1 at
     # load 60; an unattacked agent 1,000 times less accurate than today is at 1.6 or more)
     assert max(fig["worst_end"]) <= BOUND_LOADED, (fig["worst_end"], BOUND_LOADED)
