@@ -250,10 +250,12 @@ def _check_run(team: Team, faulty: tuple[int, ...], k_down: int, k_up: int) -> d
         assert rows.size, f"agent {a} never came back"
         back[a] = round(float(t[k_up + rows[0]]), 2)
     worst_end = np.nanmax(E[win], axis=0)
-    missing_end = float(np.isnan(E[win]).mean())
-    # the team runs after healing (a stalled team misses nearly every row; a loaded machine
-    # missed 17%: the accuracy checks below need at most 10% per agent)
-    assert missing_end <= 0.5, f"{missing_end:.0%} of the rows over the window are missing"
+    # the team runs after healing: a stalled team reports next to nothing over the window. The
+    # share reported follows the machine's load (quiet: 98 to 100%; load average 27: 33 to 40%,
+    # before the fault as after), so it is compared with the share before the fault
+    before = float(np.isfinite(E[:k_down]).mean())
+    end_share = float(np.isfinite(E[win]).mean())
+    assert end_share >= 0.25 * before, f"only {end_share:.0%} of the rows over the window (before the fault {before:.0%})"
     # a 3 s outage is shorter than Zenoh's 10 s lease: the sessions survive, nobody leaves
     # before the end of the run (the monitor can still be collecting the final counters when
     # an agent that is done exits: that leave comes after the plant's stop)
