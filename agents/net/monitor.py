@@ -79,6 +79,7 @@ class MonitorProcess(Role):
         self.traj = np.full((K, exp.N, exp.n), np.nan) if cfg.save_estimates else None
         self.truth = np.full((K, exp.n), np.nan) if cfg.save_estimates else None
         self._last_progress = 0.0
+        self._last_wait_log = time.monotonic()
 
     def after_batch(self) -> bool:
         # rounds are recorded by handle_data; the main loop only watches for the end
@@ -214,6 +215,20 @@ class MonitorProcess(Role):
         self.progress("member", {"t_wall": round(time.monotonic() - self.t0, 3), "round": k, "role": "monitor",
                                  "id": 0, "event": "rejoin"})
 
+    def _not_synced_yet(self) -> None:
+        """Every 5 s while a rejoining monitor has no whole round: what it is missing."""
+        now = time.monotonic()
+        if now - self._last_wait_log < 5.0 or not self.rounds:
+            return
+        self._last_wait_log = now
+        k = max(self.rounds)
+        r = self.rounds[k]
+        missing = sorted(aid for (role, aid) in self.alive
+                         if role == "agent" and aid in self.index and not r.present[self.index[aid]])
+        log.info("monitor: no whole round yet to rejoin at: round %d has %s, no report from agent(s) %s%s", k,
+                 "the truth" if r.x is not None else "no truth", ", ".join(map(str, missing)) or "-",
+                 "" if ("plant", 0) in self.alive else ", no plant token")
+
     def _complete(self, r: _Round) -> bool:
         # not before the plant's token: until then this process does not know the team (a
         # monitor that subscribes late gets the tokens present in one batch, which through
@@ -231,6 +246,7 @@ class MonitorProcess(Role):
             # live agent's report): its subscriptions reach the team's peers one by one
             first = next((k for k in sorted(self.rounds) if self._complete(self.rounds[k])), None)
             if first is None:
+                self._not_synced_yet()
                 return
             self._sync(first)
         closed = False
