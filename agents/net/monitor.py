@@ -74,6 +74,10 @@ class MonitorProcess(Role):
         self.stats: dict[str, Message] = {}
         self.membership: list[dict[str, Any]] = []
         self.index = {aid: i for i, aid in enumerate(exp.agent_ids)}
+        # a monitor that starts with the team expects every agent until it has seen each
+        # one's token: the tokens can reach it after the plant's truth of the first rounds
+        # (through a loaded router), and a round closed then would lack those agents
+        self.unseen = set() if resume else set(self.index)
         self.t0 = time.monotonic()
         K = exp.n_rounds + 1
         self.traj = np.full((K, exp.N, exp.n), np.nan) if cfg.save_estimates else None
@@ -144,6 +148,8 @@ class MonitorProcess(Role):
                 feed.frame(when)[r, s] = True
 
     def on_alive(self, role: str, i: int, alive: bool) -> None:
+        if role == "agent":
+            self.unseen.discard(i)
         # after_stop: the plant has stopped the run (a process that ends then has finished, not left early)
         event = {"t_wall": round(time.monotonic() - self.t0, 3), "round": self.next_k, "role": role, "id": i,
                  "event": "join" if alive else "leave", "after_stop": self.stop_round is not None}
@@ -233,7 +239,7 @@ class MonitorProcess(Role):
         # not before the plant's token: until then this process does not know the team (a
         # monitor that subscribes late gets the tokens present in one batch, which through
         # a loaded router can come rounds after the first truth and done reports)
-        if r.x is None or ("plant", 0) not in self.alive:
+        if r.x is None or ("plant", 0) not in self.alive or self.unseen:
             return False
         for (role, aid) in self.alive:
             if role == "agent" and aid in self.index and not r.present[self.index[aid]]:
