@@ -132,6 +132,12 @@ class SessionOptions:
         per link instead of one per priority (QoS off, negotiated per link), batches of
         :data:`SMALL_BATCH` bytes (larger messages are fragmented) and no shared-memory
         pool (Zenoh's 16 MB pool for messages over 3 kB).
+    scout_delay_ms : int, optional
+        How long opening a peer session may wait for its ``connect`` endpoints (Zenoh's
+        ``scouting/delay``; its default when None: 500 ms whenever one of them is not up
+        yet). 0: the session opens at once and the links come up in the background (with
+        ``retry_ms``): for a team whose processes start together and wait for each other's
+        liveliness anyway.
     """
 
     mode: str = "peer"
@@ -142,6 +148,7 @@ class SessionOptions:
     gossip: bool = True
     retry_ms: int | None = None
     small_links: bool = False
+    scout_delay_ms: int | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -196,6 +203,7 @@ class SessionOptions:
             gossip=self.gossip,
             retry_ms=self.retry_ms,
             small_links=self.small_links,
+            scout_delay_ms=self.scout_delay_ms,
         )
 
 
@@ -221,12 +229,14 @@ def make_config(
     gossip: bool = True,
     retry_ms: int | None = None,
     small_links: bool = False,
+    scout_delay_ms: int | None = None,
 ) -> zenoh.Config:
     """Build a ``zenoh.Config`` with ``zenoh.Config()`` + ``insert_json5``.
 
     Sets ``mode``, ``listen/endpoints``, ``connect/endpoints`` and
     ``scouting/multicast/enabled`` (the keys of Zenoh's ``DEFAULT_CONFIG.json5``),
     ``scouting/gossip/enabled`` when ``gossip`` is off, ``connect/retry`` with ``retry_ms``,
+    ``scouting/delay`` with ``scout_delay_ms``,
     the link buffers of ``small_links``, and
     with ``tls`` (a :class:`transport.secure.TlsFiles`) the ``transport/link/tls`` keys of
     mutual TLS (:func:`transport.secure.tls_settings`); everything else keeps Zenoh's defaults. Values are written with ``json.dumps`` (JSON
@@ -247,6 +257,8 @@ def make_config(
         if retry_ms is not None:
             conf.insert_json5("connect/retry", json.dumps({"period_init_ms": int(retry_ms), "period_max_ms": 1000,
                                                            "period_increase_factor": 1.5}))
+        if scout_delay_ms is not None:
+            conf.insert_json5("scouting/delay", json.dumps(int(scout_delay_ms)))
         if small_links:
             conf.insert_json5("transport/unicast/qos/enabled", "false")
             conf.insert_json5("transport/link/tx/batch_size", json.dumps(SMALL_BATCH))

@@ -229,11 +229,15 @@ def launch(
         ports = _distinct_ports(len(names))
         endpoints = {nm: tcp_endpoint(p) for nm, p in zip(names, ports)}
         # each process linked to the ones it talks to (not a full mesh): it connects to
-        # those started before it, the later ones connect to it
+        # those that listen before it, the later ones connect to it; the monitor, which
+        # reads the whole experiment first, listens last (it connects to all of its links)
         links = peer_links(slices, host)
-        order = {nm: i for i, nm in enumerate(names)}
+        order = {nm: i for i, nm in enumerate([nm for nm in names if nm != "monitor"] + ["monitor"])}
+        # a session opens at once (scout_delay_ms=0), not after Zenoh's 500 ms wait for a
+        # connect endpoint that is not listening yet: the processes start together, their
+        # links come up in the background, and each waits for the others' liveliness
         sessions = {nm: SessionOptions(mode="peer", listen=(endpoints[nm],), gossip=False, retry_ms=PEER_RETRY_MS,
-                                       small_links=True,
+                                       small_links=True, scout_delay_ms=0,
                                        connect=tuple(endpoints[o] for o in names if o in links[nm] and order[o] < order[nm]))
                     for nm in names}
     team = Team(run_id, endpoints, "client" if connect else "peer", tuple(connect), str(scenario), tuple(overrides), seed, cfg,

@@ -91,3 +91,18 @@ def test_bench_prints_agent_rounds_per_second(run_rse):
     res = run_rse("bench", "simulate", str(SCENARIOS / "lee_kim_shim.toml"), "--set", "run.duration=5", "--set", "expect=[]", "--repeat", "1")
     assert res.returncode == 0, res.stderr
     assert "simulator agent-rounds/s" in res.stdout
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="reads /proc")
+def test_bench_start_of_the_command_lies_between_its_launch_and_its_first_line():
+    # rse bench run's start-up figure counts from this; psutil's create_time read up to 1 s early
+    import subprocess
+    import sys
+    import time
+
+    code = ("import time; now = time.time(); from agents.cli.bench import _command_started; "
+            "print(_command_started(), now)")
+    before = time.time()
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    started, first_line = map(float, out.split())
+    assert before - 0.011 <= started <= first_line  # clock ticks of 10 ms, rounded down

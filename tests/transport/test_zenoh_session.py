@@ -17,6 +17,7 @@ import sys
 import textwrap
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -80,6 +81,8 @@ def test_make_config_sets_the_documented_keys():
     assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7001"]
     assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7002", "tcp/127.0.0.1:7003"]
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(conf.get_json("scouting/delay")) is None  # Zenoh's default
+    assert json.loads(make_config(scout_delay_ms=0).get_json("scouting/delay")) == 0
 
 
 def test_session_options():
@@ -156,8 +159,10 @@ def test_two_peers_exchange_a_message_through_the_bridge():
     asyncio.run(asyncio.wait_for(main(), 3 * DEADLINE_S))
 
 
-def test_peer_started_before_the_peer_it_connects_to():
-    """A peer's connect endpoints are retried in the background (launch order free)."""
+@pytest.mark.parametrize("scout_delay_ms", [None, 0])
+def test_peer_started_before_the_peer_it_connects_to(scout_delay_ms):
+    """A peer's connect endpoints are retried in the background (launch order free), also
+    when its session opens at once (``scout_delay_ms=0``, as in ``rse run``)."""
     keys = Keys("t-order")
     port_a = free_tcp_port()
 
@@ -166,7 +171,8 @@ def test_peer_started_before_the_peer_it_connects_to():
         queue: asyncio.Queue = asyncio.Queue(maxsize=16)
         a = b = None
         try:
-            b = open_session(SessionOptions.peer(connect_ports=[port_a]))
+            b = open_session(replace(SessionOptions.peer(connect_ports=[port_a]), retry_ms=50,
+                                     scout_delay_ms=scout_delay_ms))
             b.declare_subscriber(keys.ctl_pattern(), make_bridge(loop, queue))
             a = open_session(SessionOptions.peer(listen_port=port_a))
             key, data = await _next(queue, lambda: a.put(keys.ctl("stop"), b"bye"))
