@@ -22,7 +22,7 @@ def _order_complex_poles(poles: np.ndarray) -> np.ndarray:
     """Real poles sorted, then each complex pair (negative imaginary part first), as
     scipy orders them; raises ValueError when a complex pole lacks its conjugate."""
     ordered = np.sort(poles[np.isreal(poles)])
-    im_poles = []
+    im_poles: list[complex] = []
     for p in np.sort(poles[np.imag(poles) < 0]):
         if np.conj(p) in poles:
             im_poles.extend((p, np.conj(p)))
