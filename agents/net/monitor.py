@@ -222,18 +222,20 @@ class MonitorProcess(Role):
                                  "id": 0, "event": "rejoin"})
 
     def _not_synced_yet(self) -> None:
-        """Every 5 s while a rejoining monitor has no whole round: what it is missing."""
+        """Every 5 s while a rejoining monitor has no whole round: what it is missing, as
+        the number of rounds held with the truth that carry each live agent's report (an
+        agent whose reports do not reach this monitor shows 0; the newest rounds' reports
+        may still be in flight)."""
         now = time.monotonic()
         if now - self._last_wait_log < 5.0 or not self.rounds:
             return
         self._last_wait_log = now
-        k = max(self.rounds)
-        r = self.rounds[k]
-        missing = sorted(aid for (role, aid) in self.alive
-                         if role == "agent" and aid in self.index and not r.present[self.index[aid]])
-        log.info("monitor: no whole round yet to rejoin at: round %d has %s, no report from agent(s) %s%s", k,
-                 "the truth" if r.x is not None else "no truth", ", ".join(map(str, missing)) or "-",
-                 "" if ("plant", 0) in self.alive else ", no plant token")
+        with_truth = [r for r in self.rounds.values() if r.x is not None]
+        live = sorted(aid for (role, aid) in self.alive if role == "agent" and aid in self.index)
+        counts = ", ".join(f"{aid}: {sum(bool(r.present[self.index[aid]]) for r in with_truth)}" for aid in live)
+        log.info("monitor: no whole round yet to rejoin at: %d round(s) held with the truth (newest %d); "
+                 "reports in them per live agent: %s%s", len(with_truth), max(self.rounds), counts or "-",
+                 "" if ("plant", 0) in self.alive else "; no plant token")
 
     def _complete(self, r: _Round) -> bool:
         # not before the plant's token: until then this process does not know the team (a
