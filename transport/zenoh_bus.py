@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Callable
 from typing import Any
 
 from transport.bridge import BridgeStats, liveliness_to_item, make_bridge
@@ -63,20 +64,30 @@ class Bus:
     def close(self) -> None:  # pragma: no cover
         raise NotImplementedError
 
+    async def reconnect(self) -> bool:
+        """Replace the connection to the peers with a new one, with the same
+        subscriptions, watches and tokens (see :meth:`ZenohBus.reconnect`); returns
+        whether it did (a bus without peers has nothing to replace)."""
+        return False
+
 
 class ZenohBus(Bus):
-    """A :class:`Bus` over an open Zenoh session (the caller owns and closes the session)."""
+    """A :class:`Bus` over an open Zenoh session (the caller owns and closes the session,
+    :attr:`session`; with ``opener``, :meth:`reconnect` replaces it, closing the old one)."""
 
-    def __init__(self, session: Any, loop: asyncio.AbstractEventLoop | None = None) -> None:
+    def __init__(self, session: Any, loop: asyncio.AbstractEventLoop | None = None,
+                 opener: Callable[[], Any] | None = None) -> None:
         import zenoh
 
         self._zenoh = zenoh
         self.session = session
         self.loop = loop or asyncio.get_running_loop()
         self.stats = BridgeStats()
+        self._opener = opener
         self._publishers: dict[tuple[str, bool], Any] = {}
         self._subscribers: list[Any] = []
         self._tokens: list[Any] = []
+        self._declared: list[tuple[str, str, Any]] = []  # ("sub" | "watch" | "token", key, callback)
         self._closed = False
 
     def publish(self, key: str, payload: bytes, *, droppable: bool = False) -> None:
@@ -93,14 +104,46 @@ class ZenohBus(Bus):
 
     def subscribe(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:
         cb = make_bridge(self.loop, queue, stats=self.stats, name=pattern)
-        self._subscribers.append(self.session.declare_subscriber(pattern, cb))
+        self._declare("sub", pattern, cb)
 
     def watch(self, pattern: str, queue: "asyncio.Queue[Any]") -> None:
         cb = make_bridge(self.loop, queue, convert=liveliness_to_item, stats=self.stats, name=pattern)
-        self._subscribers.append(self.session.liveliness().declare_subscriber(pattern, cb, history=True))
+        self._declare("watch", pattern, cb)
 
     def announce(self, key: str) -> None:
-        self._tokens.append(self.session.liveliness().declare_token(key))
+        self._declare("token", key, None)
+
+    def _declare(self, what: str, key: str, cb: Any, *, record: bool = True) -> None:
+        if what == "sub":
+            self._subscribers.append(self.session.declare_subscriber(key, cb))
+        elif what == "watch":
+            self._subscribers.append(self.session.liveliness().declare_subscriber(key, cb, history=True))
+        else:
+            self._tokens.append(self.session.liveliness().declare_token(key))
+        if record:
+            self._declared.append((what, key, cb))
+
+    async def reconnect(self) -> bool:
+        """Close the session and open a new one (``opener``), declaring the same
+        subscriptions, watches and token again; publishers are declared again at their
+        next message. The others see this process leave and join again.
+
+        For a process that rejoined a running team of peers and does not hear some of
+        them (see :mod:`agents.net.agent`, :mod:`agents.net.monitor`): restarting such a
+        process was the workaround, and a new session is what the restart gave it. Items
+        the old session delivered stay in the queues; a token that left while no session
+        watched is not reported."""
+        if self._opener is None or self._closed:
+            return False
+        from transport.zenoh_session import close_session
+
+        self.close()
+        close_session(self.session)
+        self.session = await asyncio.to_thread(self._opener)
+        self._closed = False
+        for what, key, cb in self._declared:
+            self._declare(what, key, cb, record=False)
+        return True
 
     def close(self) -> None:
         if self._closed:

@@ -19,7 +19,7 @@ from transport.codec import PLANT_ID, Schema, decode
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import Role, RunConfig, _msg, diagnostics_meta
+from .protocol import RECONNECTS, UNHEARD_S, Role, RunConfig, _msg, diagnostics_meta
 from .view import NetworkView, reads_view
 
 if TYPE_CHECKING:
@@ -34,8 +34,13 @@ class AgentProcess(Role):
     name = "agent"
 
     def __init__(self, part: AgentSlice, bus: Bus, keys: Keys, cfg: RunConfig,
-                 *, node_hook: Callable[[Any], None] | None = None) -> None:
+                 *, node_hook: Callable[[Any], None] | None = None, rejoin: bool = False) -> None:
         super().__init__(part, bus, keys, cfg)
+        #: joining a running team: see _plant_unheard
+        self.rejoin = rejoin
+        self.reconnects = 0
+        self._heard_loc = False  # anything from the plant on my key yet
+        self._first_ready = 0.0  # when this agent first asked to join
         self.part = part
         self.id = agent_id = part.agent_id
         self.name = f"agent {agent_id}"
@@ -103,6 +108,7 @@ class AgentProcess(Role):
                 self.rejects.add(PLANT_ID, "range")
                 return
             now = time.monotonic()
+            self._heard_loc = True
             if m.kind == "ctl":
                 if m.meta.get("cmd") == "stop":
                     self.stop = (m.stamp, wait, now)
@@ -347,10 +353,23 @@ class AgentProcess(Role):
         if not neighbours <= seen and not (self.running_team and now - self.plant_seen_at > 1.0):
             return
         if now - self._last_ready >= 0.1:
+            if not self._first_ready:
+                self._first_ready = now
             if not self._last_ready:
                 log.debug("agent %d: ready", self.id)
             self._last_ready = now
             self.bus.publish(self._ready_key, _msg("ctl", self.id, 0, {}))
+
+    def _plant_unheard(self) -> bool:
+        """A rejoining agent asked to join :data:`UNHEARD_S` ago and nothing came on its
+        measurement key, though the plant's token is there (a running team's plant
+        publishes there every round). Seen about once in 5 rejoins of a realtime team:
+        the plant's droppable (``CongestionControl.DROP``) messages never reached the
+        restarted process, though the plant admitted it and its blocking messages (its
+        token) did; with blocking measurements 25 rejoins in 25 got them. A new session
+        gets them, as restarting the process did."""
+        return (self.rejoin and not self._heard_loc and bool(self._first_ready) and self.reconnects < RECONNECTS
+                and ("plant", 0) in self.alive and time.monotonic() - self._first_ready >= UNHEARD_S)
 
     async def run(self) -> dict[str, Any]:
         keys, bus, cfg = self.keys, self.bus, self.cfg
@@ -383,6 +402,12 @@ class AgentProcess(Role):
                     break
                 if not self.member:
                     self._maybe_ready()
+                    if self._plant_unheard():
+                        log.info("agent %d: nothing from the plant %.1f s after asking to join; reconnecting", self.id,
+                                 time.monotonic() - self._first_ready)
+                        self.reconnects += 1
+                        if await self.bus.reconnect():
+                            self._first_ready = self._last_ready = 0.0
                     if self.stop is not None:
                         break
                     if not self.running_team and time.monotonic() - t_start > cfg.startup_timeout:
@@ -419,6 +444,7 @@ async def run_agent(exp: Experiment, agent_id: int, bus: Bus, keys: Keys, cfg: R
 
 
 async def run_agent_slice(part: AgentSlice, bus: Bus, keys: Keys, cfg: RunConfig,
-                          *, node_hook: Callable[[Any], None] | None = None) -> dict[str, Any]:
-    """The agent of slice ``part`` (:mod:`agents.net.slices`) until the plant stops the team."""
-    return await AgentProcess(part, bus, keys, cfg, node_hook=node_hook).run()
+                          *, node_hook: Callable[[Any], None] | None = None, rejoin: bool = False) -> dict[str, Any]:
+    """The agent of slice ``part`` (:mod:`agents.net.slices`) until the plant stops the team
+    (``rejoin``: it joins a running team, and reconnects when the plant is not heard)."""
+    return await AgentProcess(part, bus, keys, cfg, node_hook=node_hook, rejoin=rejoin).run()

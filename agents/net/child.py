@@ -58,6 +58,8 @@ class ChildSpec:
     # their ids and slices (as agent_id and node for one agent)
     agent_ids: tuple[int, ...] = ()
     nodes: tuple[bytes | str, ...] = ()
+    # one agent rejoining a running team (rse agent --team): see AgentProcess.rejoin
+    rejoin: bool = False
 
     @property
     def label(self) -> str:
@@ -132,7 +134,7 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
     log.debug("session open")
     bus = None
     try:
-        bus = ZenohBus(session, loop)
+        bus = ZenohBus(session, loop, opener=lambda: _open(spec.session))
         keys = Keys(spec.run_id)
         if spec.role == "plant":
             from .plant import run_plant
@@ -143,7 +145,7 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
 
             if isinstance(exp, list):  # several agents: one task each over this one session
                 return await asyncio.gather(*(run_agent_slice(part, bus, keys, spec.cfg) for part in exp))
-            return await run_agent_slice(exp, bus, keys, spec.cfg)
+            return await run_agent_slice(exp, bus, keys, spec.cfg, rejoin=spec.rejoin)
         conn = spec.conn
 
         def progress(kind: str, data: Any) -> None:
@@ -184,6 +186,7 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
             watcher.cancel()
         if bus is not None:
             bus.close()
+            session = bus.session  # a new one after bus.reconnect()
         close_session(session)
 
 

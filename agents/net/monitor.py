@@ -19,7 +19,7 @@ from transport.codec import MONITOR_ID, PLANT_ID, Message
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import ACK_EVERY, MONITOR_LAG, Rejects, Role, RunConfig, _msg, diagnostics_from_meta, maxrss_mb, uss_mb, who_name
+from .protocol import ACK_EVERY, MONITOR_LAG, RECONNECTS, UNHEARD_S, Rejects, Role, RunConfig, _msg, diagnostics_from_meta, maxrss_mb, uss_mb, who_name
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -68,6 +68,8 @@ class MonitorProcess(Role):
             self._setup_stream(Path(out_dir))
         self.progress = progress or (lambda kind, data: None)
         self.rounds: dict[int, _Round] = {}
+        self.reconnects = 0
+        self._listening_since = time.monotonic()
         self.next_k = 0
         self.max_truth = -1
         self.stop_round: int | None = None
@@ -230,12 +232,28 @@ class MonitorProcess(Role):
         if now - self._last_wait_log < 5.0 or not self.rounds:
             return
         self._last_wait_log = now
+        n, heard = self._reports_held()
+        counts = ", ".join(f"{aid}: {c}" for aid, c in heard.items())
+        log.info("monitor: no whole round yet to rejoin at: %d round(s) held with the truth (newest %d); "
+                 "reports in them per live agent: %s%s", n, max(self.rounds), counts or "-",
+                 "" if ("plant", 0) in self.alive else "; no plant token")
+
+    def _reports_held(self) -> tuple[int, dict[int, int]]:
+        """The rounds held with the truth, and how many of them carry each live agent's report."""
         with_truth = [r for r in self.rounds.values() if r.x is not None]
         live = sorted(aid for (role, aid) in self.alive if role == "agent" and aid in self.index)
-        counts = ", ".join(f"{aid}: {sum(bool(r.present[self.index[aid]]) for r in with_truth)}" for aid in live)
-        log.info("monitor: no whole round yet to rejoin at: %d round(s) held with the truth (newest %d); "
-                 "reports in them per live agent: %s%s", len(with_truth), max(self.rounds), counts or "-",
-                 "" if ("plant", 0) in self.alive else "; no plant token")
+        return len(with_truth), {aid: sum(bool(r.present[self.index[aid]]) for r in with_truth) for aid in live}
+
+    def _reports_unheard(self) -> list[int]:
+        """A rejoining monitor that has held at least 20 rounds with the truth for
+        :data:`~agents.net.protocol.UNHEARD_S` without a report from some live agent: those
+        agents (else []). Seen once in about 30 rejoins: a restarted monitor got the
+        plant's truth but no report from the agents that had run all along; a new
+        session gets them, as restarting the process did."""
+        if self.synced or self.reconnects >= RECONNECTS or time.monotonic() - self._listening_since < UNHEARD_S:
+            return []
+        n, heard = self._reports_held()
+        return [aid for aid, c in heard.items() if c == 0] if n >= 20 else []
 
     def _complete(self, r: _Round) -> bool:
         # not before the plant's token: until then this process does not know the team (a
@@ -350,6 +368,13 @@ class MonitorProcess(Role):
                 await asyncio.sleep(max(0.5, cfg.deadline))
                 if self.stop_round is None and ("plant", 0) not in self.alive:
                     raise TransportError("the plant left before the end of the run")
+            silent = self._reports_unheard()
+            if silent:
+                log.info("monitor: no report from agent(s) %s in the rounds held; reconnecting",
+                         ", ".join(map(str, silent)))
+                self.reconnects += 1
+                await self.bus.reconnect()
+                self._listening_since = time.monotonic()
             self.changed.clear()
             try:
                 await asyncio.wait_for(self.changed.wait(), 0.25)

@@ -72,6 +72,10 @@ MODES = ("lockstep", "realtime")
 QUEUE_SIZE = 1 << 16
 MONITOR_LAG = 128  # the monitor closes round k once truth k + LAG arrived
 ACK_EVERY = 32
+#: a process that rejoined a running team and hears nothing from some peer for this long
+#: opens a new session (transport.zenoh_bus.ZenohBus.reconnect), at most RECONNECTS times
+UNHEARD_S = 3.0
+RECONNECTS = 5
 MAX_AHEAD = 512  # lockstep: the plant waits when the monitor is this many rounds behind
 UNKNOWN = MIN_ID  # sender code of a message whose key names no sender
 REASONS = ("size", "decode", "type", "keys", "version", "sender", "shape", "nonfinite", "key", "range", "neighbour",

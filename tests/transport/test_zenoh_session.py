@@ -232,6 +232,44 @@ def test_liveliness_joins_and_leaves_through_the_bridge():
     asyncio.run(asyncio.wait_for(main(), 3 * DEADLINE_S))
 
 
+def test_a_bus_reconnects_with_its_subscriptions_and_token():
+    """ZenohBus.reconnect: a new session on the same endpoints, the same subscriptions,
+    watches and token; the others see it leave and join again, and it hears them."""
+    from transport.zenoh_bus import ZenohBus
+
+    keys = Keys("t-reconnect")
+    port_a, port_b = free_tcp_port(), free_tcp_port()
+    opts_b = SessionOptions.peer(listen_port=port_b, connect_ports=[port_a])
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        seen: asyncio.Queue = asyncio.Queue(maxsize=64)
+        heard: asyncio.Queue = asyncio.Queue(maxsize=64)
+        a = open_session(SessionOptions.peer(listen_port=port_a))
+        bus_b = ZenohBus(open_session(opts_b), loop, opener=lambda: open_session(opts_b))
+        first = bus_b.session
+        try:
+            a.liveliness().declare_subscriber(keys.alive_pattern(), make_bridge(loop, seen, convert=liveliness_to_item),
+                                              history=True)
+            bus_b.subscribe(keys.plant_loc(3), heard)
+            bus_b.announce(keys.alive("agent", 3))
+            assert await asyncio.wait_for(seen.get(), DEADLINE_S) == (keys.alive("agent", 3), True)
+            assert (await _next(heard, lambda: a.put(keys.plant_loc(3), b"1")))[1] == b"1"
+            assert await bus_b.reconnect()
+            assert first.is_closed() and bus_b.session is not first
+            assert await asyncio.wait_for(seen.get(), DEADLINE_S) == (keys.alive("agent", 3), False)
+            assert await asyncio.wait_for(seen.get(), DEADLINE_S) == (keys.alive("agent", 3), True)
+            while not heard.empty():
+                heard.get_nowait()
+            assert (await _next(heard, lambda: a.put(keys.plant_loc(3), b"2")))[1] == b"2"
+        finally:
+            bus_b.close()
+            close_session(bus_b.session)
+            close_session(a)
+
+    asyncio.run(asyncio.wait_for(main(), 3 * DEADLINE_S))
+
+
 def test_open_failures_are_transport_errors():
     port = free_tcp_port()
     holder = open_session(SessionOptions.peer(listen_port=port))

@@ -1,0 +1,78 @@
+"""A process that rejoined a running team and does not hear a peer opens a new session
+(Bus.reconnect): an agent that gets nothing from the plant, a monitor that gets no report
+from a live agent. A process of a team that assembles does not."""
+
+import asyncio
+import types
+
+import numpy as np
+
+import agents.net.agent as agent_mod
+import agents.net.monitor as monitor_mod
+from agents.api import load_experiment
+from agents.net.agent import run_agent_slice
+from agents.net.monitor import MonitorProcess
+from agents.net.roles import RunConfig
+from agents.net.slices import agent_slice
+from tests.conftest import SCENARIOS
+from transport.keys import Keys
+from transport.zenoh_bus import InMemoryBus, InMemoryHub
+
+
+class CountingBus(InMemoryBus):
+    def __init__(self, hub):
+        super().__init__(hub)
+        self.reconnected = 0
+
+    async def reconnect(self) -> bool:
+        self.reconnected += 1
+        return True
+
+
+async def _agent_among_tokens(rejoin: bool, seconds: float) -> int:
+    """Agent 1 of lee_kim_shim for ``seconds``, every other process's token present and
+    nothing published on its measurement key; returns how often it reconnected."""
+    exp, _ = load_experiment(SCENARIOS / "lee_kim_shim.toml", ("run.dt=0.01",), None)
+    hub, keys = InMemoryHub(), Keys("r")
+    others = hub.bus()
+    others.announce(keys.alive("plant", 0))
+    others.announce(keys.alive("monitor", 0))
+    for aid in exp.agent_ids[1:]:
+        others.announce(keys.alive("agent", aid))
+    bus = CountingBus(hub)
+    try:
+        await asyncio.wait_for(run_agent_slice(agent_slice(exp, exp.agent_ids[0]), bus, keys,
+                                               RunConfig(startup_timeout=60.0), rejoin=rejoin), seconds)
+    except TimeoutError:
+        pass
+    return bus.reconnected
+
+
+def test_a_rejoining_agent_that_hears_no_plant_reconnects(monkeypatch):
+    monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    n = asyncio.run(_agent_among_tokens(rejoin=True, seconds=2.5))
+    assert 2 <= n <= agent_mod.RECONNECTS  # every 0.3 s after asking to join, at most RECONNECTS times
+
+
+def test_an_agent_of_an_assembling_team_waits(monkeypatch):
+    monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    assert asyncio.run(_agent_among_tokens(rejoin=False, seconds=1.5)) == 0
+
+
+def _monitor(present, *, synced=False, listening_for=10.0, reconnects=0):
+    rounds = {k: types.SimpleNamespace(x=np.zeros(2), present=np.array(present)) for k in range(25)}
+    m = types.SimpleNamespace(synced=synced, reconnects=reconnects, rounds=rounds,
+                              _listening_since=monitor_mod.time.monotonic() - listening_for,
+                              alive={("agent", 1), ("agent", 2), ("agent", 3), ("plant", 0)}, index={1: 0, 2: 1, 3: 2})
+    m._reports_held = lambda: MonitorProcess._reports_held(m)
+    return m
+
+
+def test_a_rejoining_monitor_names_the_agents_it_does_not_hear():
+    m = _monitor([1, 0, 1])
+    assert MonitorProcess._reports_unheard(m) == [2]
+    m = _monitor([1, 1, 1])
+    assert MonitorProcess._reports_unheard(m) == []
+    for kw in ({"synced": True}, {"listening_for": 1.0}, {"reconnects": monitor_mod.RECONNECTS}):
+        m = _monitor([1, 0, 1], **kw)
+        assert MonitorProcess._reports_unheard(m) == [], kw
