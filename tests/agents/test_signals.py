@@ -327,15 +327,10 @@ def test_single_roles_in_a_running_team(tmp_path):
             def both() -> bool:
                 return mon.has("rejoined the team at round") and agent.has("joined")
 
-            # both lines, or either process ended (the race below: the agent gives up)
+            # both lines, or either process ended; a rejoining process that does not hear a
+            # peer reconnects (about 1 rejoin in 10 here: 3 s, at most 5 times)
             wait_until(lambda: both() or agent.p.poll() is not None or mon.p.poll() is not None, 120)
             rejoined = both() or (mon.wait_line("rejoined the team at round", 5) and agent.has("joined"))
-            if not rejoined and mon.p.poll() is None and agent.p.poll() in (None, 1):
-                # known, open: a process that rejoins a running team of peers sometimes (about
-                # 1 run in 10) never hears from one of them (the monitor completes no round, or
-                # the agent gets no measurement); reported, the rest of this test not run
-                pytest.xfail(f"a rejoining process heard nothing from a peer (known race): {mon.text[-300:]!r} "
-                             f"{agent.text[-300:]!r}")
             assert rejoined, (mon.text, agent.text, team_proc.text)
             t_agent = interrupt(agent, signal.SIGTERM)
             t_mon = interrupt(mon, signal.SIGINT)
