@@ -38,8 +38,6 @@ class AgentProcess(Role):
         super().__init__(part, bus, keys, cfg)
         #: joining a running team: see _plant_unheard
         self.rejoin = rejoin
-        self.reconnects = 0
-        self._heard_loc = False  # anything from the plant on my key yet
         self._first_ready = 0.0  # when this agent first asked to join
         self.part = part
         self.id = agent_id = part.agent_id
@@ -108,7 +106,6 @@ class AgentProcess(Role):
                 self.rejects.add(PLANT_ID, "range")
                 return
             now = time.monotonic()
-            self._heard_loc = True
             if m.kind == "ctl":
                 if m.meta.get("cmd") == "stop":
                     self.stop = (m.stamp, wait, now)
@@ -362,14 +359,15 @@ class AgentProcess(Role):
 
     def _plant_unheard(self) -> bool:
         """A rejoining agent asked to join :data:`UNHEARD_S` ago and nothing came on its
-        measurement key, though the plant's token is there (a running team's plant
-        publishes there every round). Seen 4 times in 32 scripted rejoins of a realtime
+        measurement key (no ``running_team`` yet), though the plant's token is there (a
+        running team's plant publishes there every round, to members and others). Seen 4 times in 32 scripted rejoins of a realtime
         team: the plant's droppable (``CongestionControl.DROP``) messages never reached the
         restarted process, though the plant admitted it and its blocking messages (its
         token) did; with blocking measurements 25 rejoins in 25 got them. A new session
         gets them, as restarting the process did."""
-        return (self.rejoin and not self._heard_loc and bool(self._first_ready) and self.reconnects < RECONNECTS
-                and ("plant", 0) in self.alive and time.monotonic() - self._first_ready >= UNHEARD_S)
+        return (self.rejoin and not self.running_team and self.stop is None and bool(self._first_ready)
+                and self.reconnects < RECONNECTS and ("plant", 0) in self.alive
+                and time.monotonic() - self._first_ready >= UNHEARD_S)
 
     async def run(self) -> dict[str, Any]:
         keys, bus, cfg = self.keys, self.bus, self.cfg
@@ -403,10 +401,8 @@ class AgentProcess(Role):
                 if not self.member:
                     self._maybe_ready()
                     if self._plant_unheard():
-                        log.info("agent %d: nothing from the plant %.1f s after asking to join; reconnecting", self.id,
-                                 time.monotonic() - self._first_ready)
-                        self.reconnects += 1
-                        if await self.bus.reconnect():
+                        why = f"nothing from the plant {time.monotonic() - self._first_ready:.1f} s after asking to join"
+                        if await self.reconnect(why):
                             self._first_ready = self._last_ready = 0.0
                     if self.stop is not None:
                         break

@@ -68,7 +68,6 @@ class MonitorProcess(Role):
             self._setup_stream(Path(out_dir))
         self.progress = progress or (lambda kind, data: None)
         self.rounds: dict[int, _Round] = {}
-        self.reconnects = 0
         self._listening_since = time.monotonic()
         self.next_k = 0
         self.max_truth = -1
@@ -248,8 +247,8 @@ class MonitorProcess(Role):
         """A rejoining monitor that has held at least 20 rounds with the truth for
         :data:`~agents.net.protocol.UNHEARD_S` without a report from some live agent: those
         agents (else []). Seen 3 times in 32 scripted rejoins: a restarted monitor got
-        the plant's truth but no report from the agents that had run all along; a new session gets them, as restarting
-        the process did."""
+        the plant's truth but no report from the agents that had run all along; a new
+        session gets them, as restarting the process did."""
         if self.synced or self.reconnects >= RECONNECTS or time.monotonic() - self._listening_since < UNHEARD_S:
             return []
         n, heard = self._reports_held()
@@ -370,10 +369,7 @@ class MonitorProcess(Role):
                     raise TransportError("the plant left before the end of the run")
             silent = self._reports_unheard()
             if silent:
-                log.info("monitor: no report from agent(s) %s in the rounds held; reconnecting",
-                         ", ".join(map(str, silent)))
-                self.reconnects += 1
-                await self.bus.reconnect()
+                await self.reconnect(f"no report from agent(s) {', '.join(map(str, silent))} in the rounds held")
                 self._listening_since = time.monotonic()
             self.changed.clear()
             try:

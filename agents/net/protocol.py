@@ -241,6 +241,7 @@ class Role:
         self.queue: asyncio.Queue = asyncio.Queue(maxsize=QUEUE_SIZE)
         self.rejects = Rejects()
         self.alive: set[tuple[str, int]] = set()
+        self.reconnects = 0  # Bus.reconnect calls of a process that rejoined (at most RECONNECTS)
         self.changed = asyncio.Event()
         self.ids = set(exp.agent_ids)
         self._waiting: Callable[[], bool] | None = None  # the predicate wait_for waits on
@@ -332,6 +333,14 @@ class Role:
             return True
         finally:
             self._waiting = None
+
+    async def reconnect(self, why: str) -> bool:
+        """A process that rejoined a running team and does not hear a peer: a new session
+        (:meth:`transport.zenoh_bus.Bus.reconnect`), counted against :data:`RECONNECTS`;
+        returns whether the bus reconnected."""
+        self.reconnects += 1
+        log.info("%s: %s; reconnecting (%d of at most %d)", self.name, why, self.reconnects, RECONNECTS)
+        return await self.bus.reconnect()
 
     def send_stats(self, sender: int, links: np.ndarray | None = None, **meta: Any) -> None:
         links = np.zeros((0, 6)) if links is None else links

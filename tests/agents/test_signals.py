@@ -330,7 +330,7 @@ def test_single_roles_in_a_running_team(tmp_path):
             # both lines, or either process ended; a rejoining process that does not hear a
             # peer reconnects (7 of 32 scripted rejoins needed it: 3 s, at most 5 times)
             wait_until(lambda: both() or agent.p.poll() is not None or mon.p.poll() is not None, 120)
-            rejoined = both() or (mon.wait_line("rejoined the team at round", 5) and agent.has("joined"))
+            rejoined = both()
             assert rejoined, (mon.text, agent.text, team_proc.text)
             t_agent = interrupt(agent, signal.SIGTERM)
             t_mon = interrupt(mon, signal.SIGINT)
