@@ -74,15 +74,25 @@ def bench_simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None,
 @click.option("--deadline", type=click.FloatRange(min=0.001), default=2.0, show_default=True, help="Lockstep deadline.")
 @click.option("--skeleton/--no-skeleton", default=True, show_default=True,
               help="Also time the bare Zenoh lockstep skeletons (minimal, and the runtime's full pattern).")
+@click.option("--repeat", type=click.IntRange(1, 50), default=1, show_default=True, metavar="N",
+              help="Run the team (and the skeletons right after it) N times, interleaved; each ratio is taken "
+                   "within one repetition and the median is printed: on a small shared machine single "
+                   "figures scatter.")
 @click.option("--agents-per-process", type=click.IntRange(min=1), default=1, show_default=True, metavar="N",
               help="Host N agents in each agent process (as rse run --agents-per-process).")
 @click.option("--startup-timeout", type=click.FloatRange(min=0.1), default=60.0, show_default=True,
               help="Seconds to wait for the team to assemble.")
 @handle_errors
 def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, deadline: float, skeleton: bool,
-              agents_per_process: int, startup_timeout: float) -> None:
+              repeat: int, agents_per_process: int, startup_timeout: float) -> None:
     """Lockstep rounds/s of `rse run` on SCENARIO next to the bare Zenoh skeletons', the
-    start-up time (this command to round 0), and peak RSS and USS per process."""
+    start-up time (this command to round 0), and peak RSS and USS per process.
+
+    With --repeat N the runtime and the skeletons run N times in turn (runtime, minimal,
+    full pattern); a line per repetition, then the medians and the median of the ratios.
+    """
+    import time
+
     from ..console import out as console
     from ..net.launcher import launch
     from ..net.protocol import RunConfig
@@ -91,36 +101,71 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
     t_cmd = _command_started()
     prestart()
     exp, frozen = load_experiment(scenario, overrides, seed)
-    with tempfile.TemporaryDirectory(prefix="rse-bench-") as tmp:
-        res = launch(scenario, overrides, seed, Path(tmp) / "run",
-                     RunConfig(deadline=deadline, startup_timeout=startup_timeout), progress=False,
-                     exp=exp, frozen=frozen, say=lambda m: None, agents_per_process=agents_per_process)
-    if res.status != 0 or res.summary is None:
-        raise RSEError("; ".join(res.failures) or "the benchmark run failed")
-    perf = res.summary["performance"]
-    procs = res.summary["processes"]
-    rate = perf["rounds_per_s"]
     n_proc = -(-exp.N // agents_per_process) + 2
-    console.print(f"scenario {exp.scenario.run.name}: {exp.N} agents, {perf['rounds']} rounds, n = {exp.n}, "
-                  f"{n_proc} processes" + (f" ({agents_per_process} agents per process)" if agents_per_process > 1 else ""))
-    console.print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-                  f"Python {platform.python_version()}, {platform.system()} {platform.release()}, "
-                  f"load average {os.getloadavg()[0]:.1f}")
-    if perf.get("round0_at"):
-        console.print(f"start-up, this command to round 0: {perf['round0_at'] - t_cmd:6.2f} s  "
-                      f"(targets: <= 4 s for mitra_cells.toml, 18 processes; <= 2 s for lee_kim_shim.toml, 7)")
-    console.print(f"rse run lockstep:         {rate:8,.1f} rounds/s  ({rate * exp.N:,.0f} agent-rounds/s)")
+    sizes = run_skeleton = None
     if skeleton:
         run_skeleton, sizes_for = _skeleton()
         sizes = sizes_for(exp)
-        mini = run_skeleton(sizes, rounds=perf["rounds"], minimal=True)["rounds_per_s"]
-        full = run_skeleton(sizes, rounds=perf["rounds"])["rounds_per_s"]
+    rows: list[tuple[float, float | None, float | None]] = []
+    procs: dict = {}
+    for rep in range(repeat):
+        t_launch = t_cmd if rep == 0 else time.time()
+        with tempfile.TemporaryDirectory(prefix="rse-bench-") as tmp:
+            res = launch(scenario, overrides, seed, Path(tmp) / "run",
+                         RunConfig(deadline=deadline, startup_timeout=startup_timeout), progress=False,
+                         exp=exp if rep == 0 else None, frozen=frozen if rep == 0 else None, say=lambda m: None,
+                         agents_per_process=agents_per_process)
+        if res.status != 0 or res.summary is None:
+            raise RSEError("; ".join(res.failures) or "the benchmark run failed")
+        perf = res.summary["performance"]
+        rate = perf["rounds_per_s"]
+        if rep == 0:
+            procs = res.summary["processes"]
+            console.print(f"scenario {exp.scenario.run.name}: {exp.N} agents, {perf['rounds']} rounds, n = {exp.n}, "
+                          f"{n_proc} processes" + (f" ({agents_per_process} agents per process)"
+                                                   if agents_per_process > 1 else ""))
+            console.print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+                          f"Python {platform.python_version()}, {platform.system()} {platform.release()}, "
+                          f"load average {os.getloadavg()[0]:.1f}")
+        mini = full = None
+        if run_skeleton is not None:
+            mini = run_skeleton(sizes, rounds=perf["rounds"], minimal=True)["rounds_per_s"]
+            full = run_skeleton(sizes, rounds=perf["rounds"])["rounds_per_s"]
+        rows.append((rate, mini, full))
+        start = f"{perf['round0_at'] - t_launch:.2f} s" if perf.get("round0_at") else "n/a"
+        if repeat == 1:
+            _print_one(console, start, exp.N, rate, mini, full)
+        else:
+            console.print(f"run {rep + 1} of {repeat}: start-up {start} "
+                          f"({'this command' if rep == 0 else 'the launch'} to round 0), "
+                          f"rse run {rate:,.1f} rounds/s"
+                          + (f", minimal skeleton {mini:,.1f}, full pattern {full:,.1f}, runtime / minimal "
+                             f"{rate / mini:.0%}, / full pattern {rate / full:.0%}" if mini and full else ""))
+    if repeat > 1:
+        med = statistics.median
+        console.print(f"median over {repeat} runs: rse run {med(r[0] for r in rows):,.1f} rounds/s "
+                      f"(min {min(r[0] for r in rows):,.1f}, max {max(r[0] for r in rows):,.1f})")
+        if run_skeleton is not None:
+            minis = [r[1] for r in rows if r[1]]
+            fulls = [r[2] for r in rows if r[2]]
+            ratios = [r[0] / r[1] for r in rows if r[1]]
+            console.print(f"minimal Zenoh skeleton:   median {med(minis):,.1f} rounds/s (min {min(minis):,.1f}, "
+                          f"max {max(minis):,.1f}); full pattern median {med(fulls):,.1f}")
+            console.print(f"runtime / minimal:        median {med(ratios):.0%} of {len(ratios)} "
+                          f"({', '.join(f'{x:.0%}' for x in ratios)}; target >= 75%)")
+    console.print(_memory_line(procs, agents_per_process))
+
+
+def _print_one(console, start: str, N: int, rate: float, mini: float | None, full: float | None) -> None:
+    console.print(f"start-up, this command to round 0: {start:>7}  "
+                  f"(targets: <= 4 s for mitra_cells.toml, 18 processes; <= 2 s for lee_kim_shim.toml, 7)")
+    console.print(f"rse run lockstep:         {rate:8,.1f} rounds/s  ({rate * N:,.0f} agent-rounds/s)")
+    if mini and full:
         console.print(f"minimal Zenoh skeleton:   {mini:8,.1f} rounds/s  (a clock tick, one estimate and one done "
                       f"per agent and round)")
         console.print(f"full-pattern skeleton:    {full:8,.1f} rounds/s  (the runtime's processes and messages)")
         console.print(f"runtime / minimal:        {rate / mini:8.0%}  (target >= 75%); runtime / full pattern "
                       f"{rate / full:.0%}")
-    console.print(_memory_line(procs, agents_per_process))
 
 
 def _command_started() -> float:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import sys
 import textwrap
@@ -259,6 +260,25 @@ def test_bench_run_prints_both_rates(procs):
     for line in ("rse run lockstep:", "minimal Zenoh skeleton:", "full-pattern skeleton:", "runtime / minimal:",
                  "start-up, this command to round 0:", "agent processes: peak RSS"):
         assert line in so, so
+
+
+@pytest.mark.slow
+def test_bench_run_repeats_and_prints_the_median_ratio(procs):
+    p = procs.start(_cmd("bench", "run", str(LKS), "--set", "run.dt=0.01", "--set", "run.duration=2",
+                         "--set", "output.window=[1.0, 2.0]", "--set", "expect=[]", "--repeat", "3"))
+    so, se = p.communicate(timeout=90)
+    assert p.returncode == 0, se
+    text = " ".join(so.split())  # the console wraps long lines
+    assert "this command to round 0" in text and text.count("the launch to round 0") == 2, text
+    rates = [float(x.replace(",", "")) for x in re.findall(r"rse run ([0-9.,]+) rounds/s, minimal", text)]
+    ratios = [int(x) for x in re.findall(r"runtime / minimal (\d+)%", text)]
+    assert len(rates) == 3 and len(ratios) == 3, text
+    m = re.search(r"median over 3 runs: rse run ([0-9.,]+) rounds/s", text)
+    assert m and float(m.group(1).replace(",", "")) == sorted(rates)[1], text
+    m = re.search(r"runtime / minimal: median (\d+)% of 3 \((\d+)%, (\d+)%, (\d+)%", text)
+    assert m and [int(x) for x in m.groups()[1:]] == ratios, text
+    assert abs(int(m.group(1)) - sorted(ratios)[1]) <= 1, text  # the median of the unrounded ratios
+    assert "agent processes: peak RSS" in text
 
 
 def test_bad_input_is_one_line(procs, tmp_path):
