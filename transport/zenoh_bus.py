@@ -139,7 +139,7 @@ class ZenohBus(Bus):
 
         self.close()
         close_session(self.session)
-        self.session = await asyncio.to_thread(self._opener)
+        self.session = await _open_or_close(self._opener)
         self._closed = False
         for what, key, cb in self._declared:
             self._declare(what, key, cb, record=False)
@@ -158,6 +158,37 @@ class ZenohBus(Bus):
         self._subscribers.clear()
         self._tokens.clear()
         self._publishers.clear()
+
+
+async def _open_or_close(opener: Callable[[], Any]) -> Any:
+    """``opener()`` on a worker thread; if the caller is cancelled meanwhile (Ctrl-C or
+    SIGTERM during a reconnect), the session it opens is closed, on the thread or here,
+    not left to the interpreter's exit handler."""
+    import threading
+
+    from transport.zenoh_session import close_session
+
+    lock = threading.Lock()
+    state: dict[str, Any] = {"cancelled": False, "session": None}
+
+    def open_() -> Any:
+        session = opener()
+        with lock:
+            cancelled = state["cancelled"]
+            if not cancelled:
+                state["session"] = session
+        if cancelled:
+            close_session(session)
+        return session
+
+    try:
+        return await asyncio.to_thread(open_)
+    except asyncio.CancelledError:
+        with lock:
+            state["cancelled"] = True
+            session = state["session"]
+        close_session(session)  # opened before the cancellation reached us (None: the thread closes it)
+        raise
 
 
 # ------------------------------------------------------------------------------ in memory

@@ -270,6 +270,44 @@ def test_a_bus_reconnects_with_its_subscriptions_and_token():
     asyncio.run(asyncio.wait_for(main(), 3 * DEADLINE_S))
 
 
+def test_a_reconnect_cancelled_while_opening_closes_the_new_session():
+    """Ctrl-C or SIGTERM during ZenohBus.reconnect: the session the worker thread was
+    opening is closed when it opens, not left to the interpreter's exit handler."""
+    import threading
+
+    from transport.zenoh_bus import ZenohBus
+
+    port = free_tcp_port()
+    opts = SessionOptions.peer(listen_port=port)
+    opened: list = []
+    done = threading.Event()
+
+    def slow_open():
+        time.sleep(0.5)
+        s = open_session(opts)
+        opened.append(s)
+        done.set()
+        return s
+
+    async def main() -> None:
+        bus = ZenohBus(open_session(opts), asyncio.get_running_loop(), opener=slow_open)
+        first = bus.session
+        task = asyncio.ensure_future(bus.reconnect())
+        await asyncio.sleep(0.1)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        assert first.is_closed() and bus.session is first
+        assert await asyncio.to_thread(done.wait, DEADLINE_S)
+        for _ in range(100):  # the thread closes it right after it opened
+            if opened[0].is_closed():
+                break
+            await asyncio.sleep(0.02)
+        assert opened[0].is_closed()
+
+    asyncio.run(main())
+
+
 def test_open_failures_are_transport_errors():
     port = free_tcp_port()
     holder = open_session(SessionOptions.peer(listen_port=port))
