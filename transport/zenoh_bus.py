@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -64,10 +65,31 @@ class Bus:
     def close(self) -> None:  # pragma: no cover
         raise NotImplementedError
 
+    #: ``time.monotonic()`` of the last reconnect (0.0: none yet)
+    reconnected_at = 0.0
+    _generation = 0
+    _reconnecting: asyncio.Lock | None = None
+
     async def reconnect(self) -> bool:
         """Replace the connection to the peers with a new one, with the same
-        subscriptions, watches and tokens (see :meth:`ZenohBus.reconnect`); returns
-        whether it did (a bus without peers has nothing to replace)."""
+        subscriptions, watches and tokens (see :meth:`ZenohBus._reconnect`); returns
+        whether it did (a bus without peers has nothing to replace).
+
+        Several agents of one process share its bus: a reconnect asked for while another
+        one runs waits for it and returns True without opening a second session."""
+        generation = self._generation
+        if self._reconnecting is None:
+            self._reconnecting = asyncio.Lock()
+        async with self._reconnecting:
+            if self._generation != generation:
+                return True
+            done = await self._reconnect()
+            if done:
+                self._generation += 1
+                self.reconnected_at = time.monotonic()
+            return done
+
+    async def _reconnect(self) -> bool:
         return False
 
 
@@ -123,7 +145,7 @@ class ZenohBus(Bus):
         if record:
             self._declared.append((what, key, cb))
 
-    async def reconnect(self) -> bool:
+    async def _reconnect(self) -> bool:
         """Close the session and open a new one (``opener``), declaring the same
         subscriptions, watches and token again; publishers are declared again at their
         next message. The others see this process leave and join again.

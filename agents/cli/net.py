@@ -343,7 +343,7 @@ def agent(agent_spec: str, **kw: Any) -> None:
         cached = find_slices((team if team.is_dir() else team.parent) / "team", ids)
     label = f"agent {ids[0]}" if len(ids) == 1 else group_label(ids)
     extra: dict[str, Any] = {"agent_id": ids[0]} if len(ids) == 1 else {"agent_ids": tuple(ids)}
-    extra["rejoin"] = team is not None and len(ids) == 1  # a team that runs: see ChildSpec.rejoin
+    extra["rejoin"] = team is not None  # a team that runs: see ChildSpec.rejoin
     spec = _role_spec("agent", label, _validate=cached is None, **extra, **kw)
     if cached is None:
         from ..middleware import make_channel, make_nodes

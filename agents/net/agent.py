@@ -364,10 +364,11 @@ class AgentProcess(Role):
         team: the plant's droppable (``CongestionControl.DROP``) messages never reached the
         restarted process, though the plant admitted it and its blocking messages (its
         token) did; with blocking measurements 25 rejoins in 25 got them. A new session
-        gets them, as restarting the process did."""
+        gets them, as restarting the process did. Agents that share a process share its
+        session: each waits :data:`UNHEARD_S` after the last reconnect of any of them."""
         return (self.rejoin and not self.running_team and self.stop is None and bool(self._first_ready)
                 and self.reconnects < RECONNECTS and ("plant", 0) in self.alive
-                and time.monotonic() - self._first_ready >= UNHEARD_S)
+                and time.monotonic() - max(self._first_ready, self.bus.reconnected_at) >= UNHEARD_S)
 
     async def run(self) -> dict[str, Any]:
         keys, bus, cfg = self.keys, self.bus, self.cfg

@@ -58,7 +58,8 @@ class ChildSpec:
     # their ids and slices (as agent_id and node for one agent)
     agent_ids: tuple[int, ...] = ()
     nodes: tuple[bytes | str, ...] = ()
-    # one agent rejoining a running team (rse agent --team): see AgentProcess.rejoin
+    # the agent(s) of this process rejoining a running team (rse agent --team): see
+    # AgentProcess.rejoin; several agents share the session and its reconnects
     rejoin: bool = False
 
     @property
@@ -144,7 +145,8 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
             from .agent import run_agent_slice
 
             if isinstance(exp, list):  # several agents: one task each over this one session
-                return await asyncio.gather(*(run_agent_slice(part, bus, keys, spec.cfg) for part in exp))
+                return await asyncio.gather(*(run_agent_slice(part, bus, keys, spec.cfg, rejoin=spec.rejoin)
+                                              for part in exp))
             return await run_agent_slice(exp, bus, keys, spec.cfg, rejoin=spec.rejoin)
         conn = spec.conn
 

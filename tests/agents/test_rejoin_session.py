@@ -10,7 +10,7 @@ import numpy as np
 import agents.net.agent as agent_mod
 import agents.net.monitor as monitor_mod
 from agents.api import load_experiment
-from agents.net.agent import run_agent_slice
+from agents.net.agent import AgentProcess, run_agent_slice
 from agents.net.monitor import MonitorProcess
 from agents.net.roles import RunConfig
 from agents.net.slices import agent_slice
@@ -24,25 +24,28 @@ class CountingBus(InMemoryBus):
         super().__init__(hub)
         self.reconnected = 0
 
-    async def reconnect(self) -> bool:
+    async def _reconnect(self) -> bool:
         self.reconnected += 1
+        await asyncio.sleep(0.01)  # a session opens on a worker thread
         return True
 
 
-async def _agent_among_tokens(rejoin: bool, seconds: float) -> int:
-    """Agent 1 of lee_kim_shim for ``seconds``, every other process's token present and
-    nothing published on its measurement key; returns how often it reconnected."""
+async def _agent_among_tokens(rejoin: bool, seconds: float, hosted: int = 1) -> int:
+    """The first ``hosted`` agents of lee_kim_shim, on one bus, for ``seconds``, every
+    other process's token present and nothing published on their measurement keys;
+    returns how often the bus reconnected."""
     exp, _ = load_experiment(SCENARIOS / "lee_kim_shim.toml", ("run.dt=0.01",), None)
     hub, keys = InMemoryHub(), Keys("r")
     others = hub.bus()
     others.announce(keys.alive("plant", 0))
     others.announce(keys.alive("monitor", 0))
-    for aid in exp.agent_ids[1:]:
+    for aid in exp.agent_ids[hosted:]:
         others.announce(keys.alive("agent", aid))
     bus = CountingBus(hub)
+    cfg = RunConfig(startup_timeout=60.0)
     try:
-        await asyncio.wait_for(run_agent_slice(agent_slice(exp, exp.agent_ids[0]), bus, keys,
-                                               RunConfig(startup_timeout=60.0), rejoin=rejoin), seconds)
+        await asyncio.wait_for(asyncio.gather(*(run_agent_slice(agent_slice(exp, aid), bus, keys, cfg, rejoin=rejoin)
+                                                for aid in exp.agent_ids[:hosted])), seconds)
     except TimeoutError:
         pass
     return bus.reconnected
@@ -52,6 +55,26 @@ def test_a_rejoining_agent_that_hears_no_plant_reconnects(monkeypatch):
     monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
     n = asyncio.run(_agent_among_tokens(rejoin=True, seconds=2.5))
     assert 2 <= n <= agent_mod.RECONNECTS  # every 0.3 s after asking to join, at most RECONNECTS times
+
+
+def test_agents_that_share_a_process_share_its_reconnects(monkeypatch):
+    """Three rejoining agents on one session: a reconnect asked for by one while another
+    runs opens no second session, and each waits UNHEARD_S after the last one, so the
+    process reconnects as often as a process of one agent (not three times as often)."""
+    monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    n = asyncio.run(_agent_among_tokens(rejoin=True, seconds=1.2, hosted=3))
+    assert 2 <= n <= 4  # at 0.3 s after asking to join, then every 0.3 s or so: not 3 per period
+
+
+def test_an_agent_waits_after_its_process_reconnected():
+    """Another agent of the process reconnected 1 s ago: this one, which asked to join 10 s
+    ago, waits UNHEARD_S from that reconnect, not from its own request."""
+    now = agent_mod.time.monotonic()
+    a = types.SimpleNamespace(rejoin=True, running_team=False, stop=None, _first_ready=now - 10.0, reconnects=0,
+                              alive={("plant", 0)}, bus=types.SimpleNamespace(reconnected_at=now - 1.0))
+    assert not AgentProcess._plant_unheard(a)
+    a.bus.reconnected_at = now - agent_mod.UNHEARD_S - 1.0
+    assert AgentProcess._plant_unheard(a)
 
 
 def test_an_agent_of_an_assembling_team_waits(monkeypatch):
