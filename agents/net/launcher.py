@@ -113,7 +113,7 @@ def session_for(team: dict[str, Any], me: str, *, connect: tuple[str, ...] = (),
     eps = team["endpoints"]
     # A monitor that joins a running team listens on a port of its own host that the OS
     # chooses, not on its endpoint in the team file. Scripted rejoins (agent 3 and the
-    # monitor of a realtime team killed and restarted): on its old endpoint, in 6 of 51
+    # monitor of a realtime team killed and restarted): on its old endpoint, in at least 6 of 51
     # the restarted monitor had its links up and every token but never a report from some
     # agents, through 5 new sessions too; on a port of its own, 2 of 80. The cause is not
     # known. A restarted agent stays on its endpoint: on a port of its own, 5 of 20 never
