@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -186,8 +187,6 @@ async def _open_or_close(opener: Callable[[], Any]) -> Any:
     """``opener()`` on a worker thread; if the caller is cancelled meanwhile (Ctrl-C or
     SIGTERM during a reconnect), the session it opens is closed, on the thread or here,
     not left to the interpreter's exit handler."""
-    import threading
-
     from transport.zenoh_session import close_session
 
     lock = threading.Lock()

@@ -84,6 +84,12 @@ def tcp_endpoint(port: int, host: str = LOOPBACK) -> str:
     return f"tcp/{host}:{port}"
 
 
+def any_port(endpoint: str) -> str:
+    """``endpoint`` (``tcp/HOST:PORT``) with port 0: the same host, a port the OS chooses."""
+    head, sep, _port = endpoint.rpartition(":")
+    return f"{head}:0" if sep and "/" in head else endpoint
+
+
 def normalize_endpoint(endpoint: str) -> str:
     """Validate a Zenoh endpoint; ``HOST:PORT`` without a protocol means ``tcp/HOST:PORT``.
 

@@ -106,29 +106,26 @@ def load_team(path: Path) -> dict[str, Any]:
 def session_for(team: dict[str, Any], me: str, *, connect: tuple[str, ...] = (), tls: Any = None) -> Any:
     """Session options of process ``me`` (e.g. ``"agent 3"``) joining ``team``; ``tls``
     (a :class:`transport.secure.TlsFiles`) for a secure team."""
-    from transport.zenoh_session import SessionOptions, tcp_endpoint
+    from transport.zenoh_session import SessionOptions, any_port, tcp_endpoint
 
     if connect or team.get("transport") == "client" or tls is not None:
         return SessionOptions.client(connect or tuple(team.get("connect", ())), tls=tls)
     eps = team["endpoints"]
-    # A monitor that joins a running team listens on a port of its own host that the OS
-    # chooses, not on its endpoint in the team file. Scripted rejoins (agent 3 and the
-    # monitor of a realtime team killed and restarted): on its old endpoint, in at least 6 of 51
-    # the restarted monitor had its links up and every token but never a report from some
-    # agents, through 5 new sessions too; on a port of its own, 2 of 80. The cause is not
-    # known. A restarted agent stays on its endpoint: on a port of its own, 5 of 20 never
-    # heard the plant (0 of 20 on its endpoint).
-    listen = (any_port(eps[me]) if me == "monitor" else eps[me]) if me in eps else tcp_endpoint(0)
-    # the team's peers do not gossip: connect to every one of them (each link that this
-    # process does not use costs little), retrying soon those that are not listening yet
+    listen = eps.get(me, tcp_endpoint(0))
+    if me == "monitor":
+        # A monitor that joins a running team listens on a port of its own host that the
+        # OS chooses, not on its endpoint in the team file. Scripted rejoins (agent 3 and
+        # the monitor of a realtime team killed and restarted): on its old endpoint, in at
+        # least 6 of 51 the restarted monitor had its links up and every token but never a
+        # report from some agents, through 5 new sessions too; on a port of its own, 2 of
+        # 80. The cause is not known. A restarted agent stays on its endpoint: on a port of
+        # its own, 5 of 20 never heard the plant (0 of 20 on its endpoint).
+        listen = any_port(listen)
+    # connect to every process of the team (each link that this process does not use costs
+    # little), retrying soon those that are not listening yet; unlike the sessions rse run
+    # opens (gossip off, each linked pair connecting one way), Zenoh's gossip stays on here
     return SessionOptions(mode="peer", listen=(listen,), connect=tuple(v for k, v in eps.items() if k != me),
                           retry_ms=PEER_RETRY_MS, small_links=True)
-
-
-def any_port(endpoint: str) -> str:
-    """``endpoint`` (``tcp/HOST:PORT``) with port 0: the same host, a port the OS chooses."""
-    head, sep, _port = endpoint.rpartition(":")
-    return f"{head}:0" if sep and "/" in head else endpoint
 
 
 @dataclass

@@ -105,7 +105,8 @@ def test_a_monitor_joining_a_running_team_listens_on_a_port_of_its_own():
     """Not on its endpoint in team.json (a restarted monitor there missed some agents'
     reports in at least 6 of 51 scripted rejoins, 2 of 80 on a port of its own); an agent keeps its
     endpoint (on a port of its own 5 of 20 restarted agents never heard the plant)."""
-    from agents.net.launcher import any_port, session_for
+    from agents.net.launcher import session_for
+    from transport.zenoh_session import any_port
 
     team = {"endpoints": {"plant": "tcp/127.0.0.1:7001", "monitor": "tcp/10.0.0.2:7002", "agent 1": "tcp/[::1]:7003"}}
     mon = session_for(team, "monitor")
