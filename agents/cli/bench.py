@@ -100,6 +100,7 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
 
     t_cmd = _command_started()
     prestart()
+    # built once: launch gives every run fresh nodes, channel and slices from it
     exp, frozen = load_experiment(scenario, overrides, seed)
     n_proc = -(-exp.N // agents_per_process) + 2
     sizes = run_skeleton = None
@@ -113,8 +114,7 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
         with tempfile.TemporaryDirectory(prefix="rse-bench-") as tmp:
             res = launch(scenario, overrides, seed, Path(tmp) / "run",
                          RunConfig(deadline=deadline, startup_timeout=startup_timeout), progress=False,
-                         exp=exp if rep == 0 else None, frozen=frozen if rep == 0 else None, say=lambda m: None,
-                         agents_per_process=agents_per_process)
+                         exp=exp, frozen=frozen, say=lambda m: None, agents_per_process=agents_per_process)
         if res.status != 0 or res.summary is None:
             raise RSEError("; ".join(res.failures) or "the benchmark run failed")
         perf = res.summary["performance"]
