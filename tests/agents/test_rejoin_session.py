@@ -82,6 +82,52 @@ def test_an_agent_of_an_assembling_team_waits(monkeypatch):
     assert asyncio.run(_agent_among_tokens(rejoin=False, seconds=1.5)) == 0
 
 
+async def _member_whose_measurements_stop(mode: str, rounds: int, seconds: float) -> int:
+    """Agent 1 of lee_kim_shim, a member of a running team: a stand-in plant publishes its
+    measurement every 10 ms for ``rounds`` rounds, then nothing more (its token stays);
+    returns how often agent 1's bus reconnected within ``seconds``."""
+    from agents.net.protocol import _msg
+    from transport.codec import PLANT_ID
+
+    exp, _ = load_experiment(SCENARIOS / "lee_kim_shim.toml", ("run.dt=0.01",), None)
+    hub, keys = InMemoryHub(), Keys("r")
+    plant = hub.bus()
+    plant.announce(keys.alive("plant", 0))
+    plant.announce(keys.alive("monitor", 0))
+    for aid in exp.agent_ids[1:]:
+        plant.announce(keys.alive("agent", aid))
+    bus = CountingBus(hub)
+    task = asyncio.ensure_future(run_agent_slice(agent_slice(exp, 1), bus, keys, RunConfig(mode=mode, rate=100.0 if mode == "realtime" else None,
+                                                                                      startup_timeout=60.0)))
+    try:
+        for k in range(rounds):
+            plant.publish(keys.plant_loc(1), _msg("meas", PLANT_ID, k, {"y": np.zeros(0), "wait": np.zeros((0, 2))},
+                                                  meta={"member": True, "nomeas": True}))
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(seconds)
+        assert not task.done() or task.exception() is None
+    finally:
+        task.cancel()
+    return bus.reconnected
+
+
+def test_a_realtime_member_whose_measurements_stop_reconnects(monkeypatch):
+    """A member of a realtime team that gets no measurement for UNHEARD_S though the
+    plant's token is there opens a new session (a link that dropped every measurement
+    stays that way); while measurements come, it does not."""
+    monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    assert asyncio.run(_member_whose_measurements_stop("realtime", 100, 0.0)) == 0  # 1 s of rounds: none
+    n = asyncio.run(_member_whose_measurements_stop("realtime", 20, 1.0))
+    assert 2 <= n <= agent_mod.RECONNECTS  # 0.3 s after the last one, then every 0.3 s or so
+
+
+def test_a_lockstep_member_waits_for_its_measurements(monkeypatch):
+    """Lockstep: the plant sends the next measurement once the round is done by everyone,
+    so a long wait is no broken link."""
+    monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    assert asyncio.run(_member_whose_measurements_stop("lockstep", 20, 1.0)) == 0
+
+
 def _monitor(present, *, synced=False, listening_for=10.0, reconnects=0):
     rounds = {k: types.SimpleNamespace(x=np.zeros(2), present=np.array(present)) for k in range(25)}
     m = types.SimpleNamespace(synced=synced, reconnects=reconnects, rounds=rounds,
