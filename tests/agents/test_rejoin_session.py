@@ -121,6 +121,16 @@ def test_a_realtime_member_whose_measurements_stop_reconnects(monkeypatch):
     assert 2 <= n <= agent_mod.RECONNECTS  # 0.3 s after the last one, then every 0.3 s or so
 
 
+def test_a_member_of_a_slow_realtime_team_waits_ten_rounds():
+    """At 0.2 rounds/s a measurement comes every 5 s: no reconnect before 10 rounds (50 s)."""
+    now = agent_mod.time.monotonic()
+    a = types.SimpleNamespace(member=True, cfg=RunConfig(mode="realtime", rate=0.2), stop=None, reconnects=0,
+                              alive={("plant", 0)}, _last_loc=now - 20.0, bus=types.SimpleNamespace(reconnected_at=0.0))
+    assert not AgentProcess._measurements_stopped(a)
+    a._last_loc = now - 51.0
+    assert AgentProcess._measurements_stopped(a)
+
+
 def test_a_lockstep_member_waits_for_its_measurements(monkeypatch):
     """Lockstep: the plant sends the next measurement once the round is done by everyone,
     so a long wait is no broken link."""
