@@ -113,13 +113,14 @@ def session_for(team: dict[str, Any], me: str, *, connect: tuple[str, ...] = (),
     eps = team["endpoints"]
     listen = eps.get(me, tcp_endpoint(0))
     if me == "monitor":
-        # A monitor that joins a running team listens on a port of its own host that the
-        # OS chooses, not on its endpoint in the team file. Scripted rejoins (agent 3 and
-        # the monitor of a realtime team killed and restarted): on its old endpoint, in at
-        # least 6 of 51 the restarted monitor had its links up and every token but never a
-        # report from some agents, through 5 new sessions too; on a port of its own, 2 of
-        # 80. The cause is not known. A restarted agent stays on its endpoint: on a port of
-        # its own, 5 of 20 never heard the plant (0 of 20 on its endpoint).
+        # A monitor that joins a running team listens on a port of its own host that the OS
+        # chooses, not on its endpoint in the team file: it connects out to every process,
+        # and nobody dials its new port, so no pair of processes links twice. (It was chosen
+        # while the restarted monitor's missing reports were thought to be its own doing;
+        # they came from agents whose measurements had stopped: see
+        # AgentProcess._measurements_stopped.) A restarted agent stays on its endpoint: the
+        # linked processes started after it dial that one again (on a port of its own, 5 of
+        # 20 never heard the plant).
         listen = any_port(listen)
     # connect to every process of the team (each link that this process does not use costs
     # little), retrying soon those that are not listening yet; unlike the sessions rse run

@@ -247,8 +247,10 @@ class MonitorProcess(Role):
         """A rejoining monitor that has held at least 20 rounds with the truth for
         :data:`~agents.net.protocol.UNHEARD_S` without a report from some live agent: those
         agents (else []). Seen 3 times in 32 scripted rejoins: a restarted monitor got
-        the plant's truth but no report from the agents that had run all along; a new
-        session gets them, as restarting the process did."""
+        the plant's truth but no report from the agents that had run all along. Where that
+        lasted, those agents had stopped getting measurements and sent nothing at all (they
+        reconnect themselves: AgentProcess._measurements_stopped); a new session of the
+        monitor is for a link of its own that does not deliver."""
         if self.synced or self.reconnects >= RECONNECTS or time.monotonic() - self._listening_since < UNHEARD_S:
             return []
         n, heard = self._reports_held()
