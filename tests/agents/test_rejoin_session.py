@@ -112,13 +112,13 @@ async def _member_whose_measurements_stop(mode: str, rounds: int, seconds: float
 
 
 def test_a_realtime_member_whose_measurements_stop_reconnects(monkeypatch):
-    """A member of a realtime team that gets no measurement for UNHEARD_S though the
+    """A member of a realtime team that gets no measurement for twice UNHEARD_S though the
     plant's token is there opens a new session (a link that dropped every measurement
     stays that way); while measurements come, it does not."""
     monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
     assert asyncio.run(_member_whose_measurements_stop("realtime", 100, 0.0)) == 0  # 1 s of rounds: none
-    n = asyncio.run(_member_whose_measurements_stop("realtime", 20, 1.0))
-    assert 2 <= n <= agent_mod.RECONNECTS  # 0.3 s after the last one, then every 0.3 s or so
+    n = asyncio.run(_member_whose_measurements_stop("realtime", 20, 2.0))
+    assert 2 <= n <= agent_mod.RECONNECTS  # 0.6 s (twice UNHEARD_S) after the last one, then every 0.6 s or so
 
 
 def test_a_member_of_a_slow_realtime_team_waits_ten_rounds():
@@ -127,7 +127,9 @@ def test_a_member_of_a_slow_realtime_team_waits_ten_rounds():
     a = types.SimpleNamespace(member=True, cfg=RunConfig(mode="realtime", rate=0.2), stop=None, reconnects=0,
                               alive={("plant", 0)}, _last_loc=now - 20.0, bus=types.SimpleNamespace(reconnected_at=0.0))
     assert not AgentProcess._measurements_stopped(a)
-    a._last_loc = now - 51.0
+    a.cfg = RunConfig(mode="realtime", rate=100.0)
+    assert AgentProcess._measurements_stopped(a)  # at 100 rounds/s, 20 s is a stopped link
+    a.cfg, a._last_loc = RunConfig(mode="realtime", rate=0.2), now - 51.0
     assert AgentProcess._measurements_stopped(a)
 
 
