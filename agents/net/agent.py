@@ -376,14 +376,17 @@ class AgentProcess(Role):
         """A member of a realtime team whose measurements stopped twice :data:`UNHEARD_S` ago
         (or 10 rounds, at a slow rate) though the plant's token is there: the plant publishes
         on this agent's key every round. Twice: a cable pulled for 3 s (tests/deploy) is an
-        outage that ends by itself, and a reconnect costs the agent its warm-up again. Seen in scripted restarts of agent 3 and the monitor of a loaded realtime
-        team (about 1 in 10 with two busy processes beside it): agents that had run all
-        along stopped getting their measurements for good, used no CPU, and so sent nothing
-        (a restarted monitor heard none of them, however often it reconnected); a fresh
-        process joining the team saw the plant publish on their keys. The plant's
-        measurements are droppable in realtime (``CongestionControl.DROP``); Zenoh's
-        pipeline toward those agents dropped every one (eclipse-zenoh/zenoh#1738 describes a
-        publisher stuck that way). A new session is a new link."""
+        outage that ends by itself, and a reconnect costs the agent its warm-up again.
+
+        Seen in scripted restarts of agent 3 and the monitor of a loaded realtime team (6 of
+        78 with two or three busy processes beside it, 19 of 74 with the test suite): agents
+        that had run all along stopped getting measurements for good, used no CPU and so
+        sent nothing (a restarted monitor heard none of them, however often it reconnected),
+        while a fresh process joining the team saw the plant publish on their keys. The
+        plant's measurements are droppable in realtime (``CongestionControl.DROP``) and its
+        socket toward those agents held nothing to send: Zenoh's pipeline toward them dropped
+        every one (eclipse-zenoh/zenoh#1738 describes a publisher stuck that way). A new
+        session is a new link."""
         rate = self.cfg.rate or 1.0
         return (self.member and self.cfg.mode == "realtime" and self.stop is None and self.reconnects < RECONNECTS
                 and ("plant", 0) in self.alive and self._last_loc > 0.0
