@@ -369,8 +369,15 @@ class AgentProcess(Role):
         gets them, as restarting the process did. Agents that share a process share its
         session: each waits :data:`UNHEARD_S` after the last reconnect of any of them."""
         return (self.rejoin and not self.running_team and self.stop is None and bool(self._first_ready)
-                and self.reconnects < RECONNECTS and ("plant", 0) in self.alive
-                and time.monotonic() - max(self._first_ready, self.bus.reconnected_at) >= UNHEARD_S)
+                and AgentProcess._unheard_for(self, self._first_ready, UNHEARD_S))
+
+    def _unheard_for(self, since: float, wait: float) -> bool:
+        """The plant's token is there, this process may still reconnect, and ``wait``
+        seconds have gone by since ``since`` and since the process's last reconnect. (Called
+        as ``AgentProcess._unheard_for(self, ...)``: the tests give the predicates a plain
+        namespace for ``self``.)"""
+        return (self.reconnects < RECONNECTS and ("plant", 0) in self.alive
+                and time.monotonic() - max(since, self.bus.reconnected_at) >= wait)
 
     def _measurements_stopped(self) -> bool:
         """A member of a realtime team whose measurements stopped twice :data:`UNHEARD_S` ago
@@ -388,9 +395,8 @@ class AgentProcess(Role):
         every one (eclipse-zenoh/zenoh#1738 describes a publisher stuck that way). A new
         session is a new link."""
         rate = self.cfg.rate or 1.0
-        return (self.member and self.cfg.mode == "realtime" and self.stop is None and self.reconnects < RECONNECTS
-                and ("plant", 0) in self.alive and self._last_loc > 0.0
-                and time.monotonic() - max(self._last_loc, self.bus.reconnected_at) >= max(2 * UNHEARD_S, 10.0 / rate))
+        return (self.member and self.cfg.mode == "realtime" and self.stop is None and self._last_loc > 0.0
+                and AgentProcess._unheard_for(self, self._last_loc, max(2 * UNHEARD_S, 10.0 / rate)))
 
     async def run(self) -> dict[str, Any]:
         keys, bus, cfg = self.keys, self.bus, self.cfg
