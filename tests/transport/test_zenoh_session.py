@@ -385,6 +385,29 @@ def test_bridge_drops_and_counts_when_full():
         loop.close()
 
 
+def test_bridges_into_one_queue_wake_the_loop_once_per_burst():
+    loop = asyncio.new_event_loop()
+    try:
+        calls = []
+        schedule = loop.call_soon_threadsafe
+        loop.call_soon_threadsafe = lambda *a: (calls.append(a), schedule(*a))[1]  # type: ignore[method-assign]
+        queue: asyncio.Queue = asyncio.Queue(maxsize=8)
+        s1, s2 = BridgeStats(), BridgeStats()
+        cb1, cb2 = make_bridge(loop, queue, stats=s1), make_bridge(loop, queue, stats=s2)
+        for cb, p in ((cb1, b"a"), (cb2, b"b"), (cb1, b"c")):  # the loop is not running: one burst
+            cb(fake_sample(payload=p))
+        assert len(calls) == 1
+        loop.run_until_complete(asyncio.sleep(0))
+        assert [queue.get_nowait()[1] for _ in range(3)] == [b"a", b"b", b"c"]  # in order of arrival
+        assert (s1.received, s2.received) == (2, 1)
+        cb2(fake_sample(payload=b"d"))  # after the drain: a new burst, a new wake-up
+        assert len(calls) == 2
+        loop.run_until_complete(asyncio.sleep(0))
+        assert queue.get_nowait()[1] == b"d" and s2.received == 2
+    finally:
+        loop.close()
+
+
 def test_bridge_tolerates_a_closed_loop():
     loop = asyncio.new_event_loop()
     queue: asyncio.Queue = asyncio.Queue(maxsize=4)
