@@ -411,8 +411,14 @@ class AgentProcess(Role):
         else:  # also the estimates its receivers will use, and the reports it waits for
             for j in sorted(set(self.in_ids) | set(self.view.needed)):
                 bus.subscribe(keys.est(j), self.queue)
-            for j in sorted({self.id} | self.view.out_set):
-                bus.subscribe(keys.est_pattern(to=j), self.queue)
+            bus.subscribe(keys.est_pattern(to=self.id), self.queue)
+            # a receiver's addressed messages from the senders the view reads, by name: a
+            # pattern (agent/*/est/{j}) would bring back this agent's own messages to j too,
+            # one local delivery each (2 of the 5 ms between the last honest report and
+            # this agent's round on mitra_cells.toml)
+            for j in sorted(self.view.out_set):
+                for s in self.part.view.before.get(j, ()):
+                    bus.subscribe(keys.est(s, j), self.queue)
             for s in sorted(set(self.view.needed) | set(merged_ins)):
                 bus.subscribe(keys.ctl("done", s), self.queue)
         bus.watch(keys.alive_pattern(), self.queue)
