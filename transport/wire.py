@@ -126,18 +126,22 @@ def _all_finite(a: np.ndarray) -> bool:
     return _count_nonzero(_isfinite(a)) == a.size
 
 
-def _freeze_array(name: object, value: object) -> np.ndarray:
+def _freeze_array(name: object, value: object, *, copy: bool = True) -> np.ndarray:
+    """``value`` as a checked float64 array: a read-only C-contiguous copy, or with
+    ``copy=False`` the value itself when it already is a float64 array (never made
+    read-only then: it is the caller's; for encoding it at once)."""
     if type(name) is not str or not _NAME_RE.match(name):
         raise _fail("keys", f"array name {name!r:.40} is not a name")
     if isinstance(value, (str, bytes)):
         raise _fail("type", f"array {name!r} is a string, not numbers")
     try:
-        a = np.array(value, dtype=np.float64, copy=True, order="C")
+        a = np.array(value, dtype=np.float64, copy=True, order="C") if copy else np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError) as exc:
         raise _fail("type", f"array {name!r} is not convertible to float64: {exc}") from exc
     if a.ndim > MAX_NDIM or (a.ndim and max(a.shape) > MAX_DIM):
         raise _fail("shape", f"array {name!r} has shape {a.shape}, beyond the wire limits")
     if not _all_finite(a):
         raise _fail("nonfinite", f"array {name!r} has non-finite values")
-    a.setflags(write=False)
+    if copy:
+        a.setflags(write=False)
     return a

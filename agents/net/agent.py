@@ -156,9 +156,9 @@ class AgentProcess(Role):
             return None
         p, m = got
         j = p.sender
-        to, stamps = m.arrays["to"], m.arrays["stamps"]
-        if (j not in self.part.merged or stamps.size != to.size or to.size > self.part.N
-                or not all(float(v).is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
+        to, stamps = m.arrays["to"].tolist(), m.arrays["stamps"].tolist()
+        if (j not in self.part.merged or len(stamps) != len(to) or len(to) > self.part.N
+                or not all(v.is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
             self.rejects.add(j, "range")
             return None
         receivers = [int(t) for t in to]
@@ -198,9 +198,9 @@ class AgentProcess(Role):
             except MessageError as exc:
                 self.rejects.add(p.sender, exc.reason)
                 return
-            to, stamps = m.arrays["to"], m.arrays["stamps"]
-            if (p.sender not in self.view.index_of or stamps.size != to.size or to.size > self.part.N
-                    or not all(float(v).is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
+            to, stamps = m.arrays["to"].tolist(), m.arrays["stamps"].tolist()
+            if (p.sender not in self.view.index_of or len(stamps) != len(to) or len(to) > self.part.N
+                    or not all(v.is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
                 self.rejects.add(p.sender, "range")
                 return
             self.view.add_done(p.sender, m.stamp, [(int(t), int(st)) for t, st in zip(to, stamps)])

@@ -58,7 +58,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from estimation.errors import MessageError
-from transport.codec import MIN_ID, MONITOR_ID, PLANT_ID, Message, Schema, decode, encode
+from transport.codec import MIN_ID, MONITOR_ID, PLANT_ID, Message, Schema, decode, encode_fields
 from transport.keys import Keys, ParsedKey
 from transport.zenoh_bus import Bus
 
@@ -227,7 +227,7 @@ class Rejects:
 
 
 def _msg(kind: str, sender: int, stamp: int, arrays: dict, **kw: Any) -> bytes:
-    return encode(Message(kind=kind, sender=sender, stamp=stamp, arrays=arrays, **kw))
+    return encode_fields(kind, sender, stamp, arrays, **kw)
 
 
 class Role:

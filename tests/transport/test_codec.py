@@ -25,6 +25,7 @@ from transport.codec import (
     Schema,
     decode,
     encode,
+    encode_fields,
     to_wire,
 )
 
@@ -385,6 +386,44 @@ def valid_messages(draw) -> Message:
         meta=meta,
     )
 
+
+@given(valid_messages())
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+def test_encode_fields_writes_the_bytes_of_encode(msg):
+    fields = dict(msg.arrays)
+    fields = {name: (a.tolist() if i % 2 else a) for i, (name, a) in enumerate(fields.items())}  # lists too
+    data = encode_fields(msg.kind, msg.sender, msg.stamp, fields, receiver=msg.receiver, meta=dict(msg.meta))
+    assert data == encode(msg)
+
+
+@pytest.mark.parametrize(
+    "kw, reason",
+    [
+        ({"kind": "nope"}, "type"),
+        ({"sender": True}, "type"),
+        ({"sender": MAX_ID + 1}, "type"),
+        ({"stamp": -1}, "type"),
+        ({"stamp": MAX_STAMP + 1}, "type"),
+        ({"receiver": "2"}, "type"),
+        ({"meta": {"bad key": 1}}, "keys"),
+        ({"meta": {"v": math.nan}}, "nonfinite"),
+        ({"arrays": {"x": np.array([1.0, np.inf])}}, "nonfinite"),
+        ({"arrays": {"x": "1.0"}}, "type"),
+        ({"arrays": {"bad name": np.zeros(1)}}, "keys"),
+        ({"arrays": {"x": np.zeros(4)}, "max_bytes": 16}, "size"),
+    ],
+)
+def test_encode_fields_rejects_what_message_rejects(kw, reason):
+    args = {"kind": "est", "sender": 1, "stamp": 3, "arrays": {"x": np.zeros(4)}, **kw}
+    with pytest.raises(MessageError) as info:
+        encode_fields(args.pop("kind"), args.pop("sender"), args.pop("stamp"), args.pop("arrays"), **args)
+    assert info.value.reason == reason
+
+
+def test_encode_fields_leaves_the_callers_array_alone():
+    x = np.arange(4.0)
+    encode_fields("est", 1, 3, {"x": x})
+    assert x.flags.writeable
 
 # Values of every msgpack type, to put where they do not belong.
 wire_values = st.recursive(
