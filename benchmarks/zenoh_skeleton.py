@@ -14,8 +14,9 @@ padding after), nothing is decoded and nothing is estimated::
 A Byzantine agent of the scenario sends addressed messages (``est/{i}/{j}``, one per
 out-neighbour) as the runtime's Byzantine middleware does, and an omniscient one (the
 cancellation attack) also hears what the runtime's adversary hears (the estimates and
-done reports of the agents its view needs, the addressed messages to its out-neighbours)
-and holds its round-``k`` messages until those agents' round-``k`` estimates arrived.
+done reports of the agents its view needs, the addressed messages to its out-neighbours
+from the senders its view reads) and holds its round-``k`` messages until those agents'
+round-``k`` estimates arrived.
 
 The *minimal* skeleton (``run_skeleton(..., minimal=True)``) is the least a lockstep
 round can send: a clock ticks once per round, each agent publishes one estimate and one
@@ -53,6 +54,8 @@ class Sizes:
     addressed: tuple[tuple[int, ...], ...] = ()
     #: per agent: the agents whose round-k estimates an omniscient adversary waits for, else ()
     needed: tuple[tuple[int, ...], ...] = ()
+    #: per agent: the (sender, receiver) addressed keys an omniscient adversary reads, else ()
+    reads: tuple[tuple[tuple[int, int], ...], ...] = ()
 
 
 def sizes_for(exp: Any) -> Sizes:
@@ -76,9 +79,10 @@ def sizes_for(exp: Any) -> Sizes:
     from agents.net.view import reads_view, view_topology
 
     addressed = tuple(tuple(outs[i]) if i in exp.byzantine_specs else () for i in range(exp.N))
-    needed = tuple(tuple(view_topology(exp, ids[i], {}).needed) if reads_view(byzantine_strategy(exp, i)) else ()
-                   for i in range(exp.N))
-    return Sizes(tuple(ids), tuple(ins), meas, truth, est, done, addressed, needed)
+    views = [view_topology(exp, ids[i], {}) if reads_view(byzantine_strategy(exp, i)) else None for i in range(exp.N)]
+    needed = tuple(tuple(v.needed) if v is not None else () for v in views)
+    reads = tuple(tuple((s, j) for j in v.out for s in v.before.get(j, ())) if v is not None else () for v in views)
+    return Sizes(tuple(ids), tuple(ins), meas, truth, est, done, addressed, needed, reads)
 
 
 def ring_sizes(N: int, n: int = 6) -> Sizes:
@@ -224,9 +228,9 @@ async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: 
             for j in sorted(set(ins) | needed):
                 bus.subscribe(keys.est(j), q)
             bus.subscribe(keys.est_pattern(to=me), q)
-            if needed:  # the omniscient adversary's subscriptions
-                for j in addressed:
-                    bus.subscribe(keys.est_pattern(to=j), q)
+            if needed:  # the omniscient adversary's subscriptions (its receivers' messages by sender, as the runtime's)
+                for s, j in sizes.reads[idx]:
+                    bus.subscribe(keys.est(s, j), q)
                 for j in sorted(needed):
                     bus.subscribe(keys.ctl("done", j), q)
             bus.watch(keys.alive_pattern(), q)

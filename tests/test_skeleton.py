@@ -19,7 +19,11 @@ def test_sizes_carry_the_adversarys_pattern() -> None:
     outs = tuple(exp.agent_ids[j] for j in exp.out_neighbours(b))
     assert sz.addressed[b] == outs and len(outs) > 1
     assert sz.needed[b] and exp.agent_ids[b] not in sz.needed[b]
-    assert all(not sz.addressed[i] and not sz.needed[i] for i in range(exp.N) if i != b)
+    assert all(not sz.addressed[i] and not sz.needed[i] and not sz.reads[i] for i in range(exp.N) if i != b)
+    # it reads its receivers' addressed messages by sender, never its own (as the runtime's adversary)
+    me = exp.agent_ids[b]
+    assert sz.reads[b] and {j for _, j in sz.reads[b]} <= set(outs) and all(s != me for s, _ in sz.reads[b])
+    assert {s for s, _ in sz.reads[b]} == set(sz.needed[b])
     # the encoded sizes are the runtime's: an estimate of n = 80 floats is at least 640 bytes
     assert sz.est >= 8 * exp.n
 

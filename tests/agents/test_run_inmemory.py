@@ -143,3 +143,30 @@ def test_omniscient_adversary_among_agents_whose_done_report_carries_the_estimat
     assert _rel(res.estimates, ref.estimates, ref.truth) <= 1e-12
     assert res.summary["links"] == ref.links
     assert res.summary["agents"]["2"]["regular"] is False
+
+
+def test_omniscient_adversary_does_not_hear_its_own_addressed_messages(monkeypatch):
+    """The adversary subscribes to its receivers' addressed messages by sender: none of its
+    subscriptions matches its own addressed keys (a pattern did: one local delivery per
+    message sent), and it still equals the simulator."""
+    from transport.zenoh_bus import InMemoryBus
+
+    subs: list[tuple[object, str]] = []
+    plain = InMemoryBus.subscribe
+
+    def recording(self, pattern, queue):
+        subs.append((self, pattern))
+        plain(self, pattern, queue)
+
+    monkeypatch.setattr(InMemoryBus, "subscribe", recording)
+    ref, res = _both(SCENARIOS / "mitra_cells.toml", ("run.rounds=40", "expect=[]"))
+    assert _rel(res.estimates, ref.estimates, ref.truth) <= 1e-12
+    exp, _ = load_experiment(SCENARIOS / "mitra_cells.toml", ("run.rounds=40", "expect=[]"), None)
+    (b,) = exp.byzantine
+    me, keys = exp.agent_ids[b], Keys("mem")
+    mine = [p for bus, p in subs if any(q == keys.plant_loc(me) for bus2, q in subs if bus2 is bus)]
+    assert mine, "the adversary's subscriptions were not recorded"
+    outs = [exp.agent_ids[j] for j in exp.out_neighbours(b)]
+    assert not [p for p in mine for j in outs if key_matches(p, keys.est(me, j))]
+    others = [exp.agent_ids[i] for i in exp.in_neighbours(exp.out_neighbours(b)[0]) if i != b]
+    assert any(key_matches(p, keys.est(s, outs[0])) for p in mine for s in others)
