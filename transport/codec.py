@@ -39,21 +39,8 @@ import msgpack
 import numpy as np
 
 __all__ = [
-    "VERSION",
-    "KINDS",
-    "DEFAULT_MAX_BYTES",
-    "PLANT_ID",
-    "MONITOR_ID",
-    "LAUNCHER_ID",
-    "MIN_ID",
-    "MAX_ID",
-    "MAX_STAMP",
-    "Message",
-    "Schema",
-    "encode",
-    "encode_fields",
-    "decode",
-    "to_wire",
+    "VERSION", "KINDS", "DEFAULT_MAX_BYTES", "PLANT_ID", "MONITOR_ID", "LAUNCHER_ID", "MIN_ID", "MAX_ID", "MAX_STAMP",
+    "Message", "Schema", "encode", "encode_fields", "decode", "to_wire",
 ]
 
 from .wire import (
@@ -284,16 +271,18 @@ class Schema:
             _check_shape(name, msg.arrays[name].shape, spec)
 
 
+_ANY1 = (None,)  # the shape spec of any 1-D array
+
+
 def _as_schema(schema: Schema | Mapping[str, Mapping[str, Sequence[int | None]]]) -> Schema:
     return schema if isinstance(schema, Schema) else Schema(schema)
 
 
 def _check_shape(name: str, shape: tuple[int, ...], spec: ShapeSpec) -> None:
-    if shape == spec:
+    if shape == spec or (len(shape) == len(spec) and (spec == _ANY1 or all(e is None or e == d for d, e in zip(shape, spec)))):
         return
-    if len(shape) != len(spec) or any(e is not None and e != d for d, e in zip(shape, spec)):
-        expected = "(" + ", ".join("*" if e is None else str(e) for e in spec) + ("," if len(spec) == 1 else "") + ")"
-        raise _fail("shape", f"array {name!r} has shape {shape}, expected {expected}")
+    expected = "(" + ", ".join("*" if e is None else str(e) for e in spec) + ("," if len(spec) == 1 else "") + ")"
+    raise _fail("shape", f"array {name!r} has shape {shape}, expected {expected}")
 
 
 # ------------------------------------------------------------------------------- encode
@@ -492,8 +481,8 @@ def _decode_array(name: str, entry: object, spec: ShapeSpec) -> np.ndarray:
     _check_shape(name, shape, spec)
     if len(raw) != 8 * count:
         raise _fail("shape", f"array {name!r} has {len(raw)} bytes, shape {shape} needs {8 * count}")
-    # astype copies: the array owns its memory and is native-endian float64.
-    a = np.frombuffer(raw, dtype=_F8).reshape(shape).astype(np.float64)
+    # A read-only view of the immutable bytes, not a copy (native float64 on a little-endian host).
+    a = np.frombuffer(raw, dtype=_F8).reshape(shape) if _LITTLE else np.frombuffer(raw, dtype=_F8).reshape(shape).astype(np.float64)
     if not _all_finite(a):
         raise _fail("nonfinite", f"array {name!r} has non-finite values")
     a.setflags(write=False)
