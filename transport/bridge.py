@@ -23,8 +23,9 @@ Zenoh thread::
 * Never silent: an exception while converting a sample or scheduling it is logged with
   its traceback and counted (``stats.errors``).
 * Shutdown-safe: once the loop is closed, samples are dropped and counted
-  (``stats.dropped_closed``) without raising into Zenoh; a sample already handed to a
-  loop that then stops is simply never delivered.
+  (``stats.dropped_closed``) without raising into Zenoh, and so are the samples that were
+  still waiting for it (when the next one comes); a sample already handed to a loop that
+  then stops is simply never delivered.
 """
 
 from __future__ import annotations
@@ -111,28 +112,43 @@ class _Feeder:
         self.pending: list[tuple[Any, BridgeStats]] = []
         self.scheduled = False  # a _drain is on the loop's ready list
 
-    def offer(self, item: Any, stats: BridgeStats) -> bool:
-        """On a Zenoh thread: queue ``item`` for the loop. False when it does not fit
-        (the queue plus the items waiting reach ``maxsize``); raises RuntimeError when
-        the loop is closed (the item is not kept)."""
+    def offer(self, item: Any, stats: BridgeStats, label: str) -> None:
+        """On a Zenoh thread: queue ``item`` for the loop, or count why it cannot be
+        (``stats.dropped_full``: the queue plus the items waiting reach ``maxsize``;
+        ``dropped_closed``: the loop is closed, and so are the items still waiting)."""
         queue = self.queue
         with self.lock:
             # qsize() from another thread is a racy read of a deque's length: harmless,
             # it only makes the bound approximate by the items the loop is taking out.
-            if len(self.pending) + queue.qsize() >= queue.maxsize:
-                return False
-            self.pending.append((item, stats))
-            if self.scheduled:
-                return True
-            self.scheduled = True
+            full = len(self.pending) + queue.qsize() >= queue.maxsize
+            if not full:
+                self.pending.append((item, stats))
+                schedule, self.scheduled = not self.scheduled, True
+        if full:
+            _count_full(stats, label)
+            return
+        if not schedule:  # a drain is on its way, unless the loop closed before running it
+            if self.loop.is_closed():
+                self._drop_pending(label, None)
+            return
         try:
             self.loop.call_soon_threadsafe(self._drain)
-        except BaseException:
-            with self.lock:
-                self.pending.pop()
-                self.scheduled = False
-            raise
-        return True
+        except Exception as exc:
+            self._drop_pending(label, exc)
+
+    def _drop_pending(self, label: str, exc: Exception | None) -> None:
+        """The items waiting can no longer reach the loop: count each (closed loop) or
+        log the error of scheduling them."""
+        with self.lock:
+            dropped, self.pending = self.pending, []
+            self.scheduled = False
+        closed = self.loop.is_closed()
+        for _, stats in dropped:
+            n = stats._add("dropped_closed" if closed else "errors")
+            if closed and n == 1:
+                log.debug("bridge%s: event loop closed, dropping samples", label)
+        if not closed:
+            log.error("bridge%s: cannot schedule %d sample(s); dropped: %r", label, len(dropped), exc)
 
     def _drain(self) -> None:  # on the loop's thread
         with self.lock:
@@ -217,17 +233,7 @@ def make_bridge(
             log.exception("bridge%s: cannot convert a sample; dropped", label)
             return
         try:
-            if not feeder.offer(item, counters):
-                _count_full(counters, label)
-        except RuntimeError:
-            # The loop is closed (shutdown): nothing will consume this item.
-            if loop.is_closed():
-                n = counters._add("dropped_closed")
-                if n == 1:
-                    log.debug("bridge%s: event loop closed, dropping samples", label)
-            else:
-                counters._add("errors")
-                log.exception("bridge%s: cannot schedule a sample; dropped", label)
+            feeder.offer(item, counters, label)
         except Exception:
             counters._add("errors")
             log.exception("bridge%s: cannot schedule a sample; dropped", label)

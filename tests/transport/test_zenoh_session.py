@@ -418,6 +418,18 @@ def test_bridge_tolerates_a_closed_loop():
     assert cb.stats.dropped_closed == 2 and cb.stats.errors == 0
 
 
+def test_samples_still_waiting_when_the_loop_closes_are_counted():
+    loop = asyncio.new_event_loop()
+    queue: asyncio.Queue = asyncio.Queue(maxsize=8)
+    cb = make_bridge(loop, queue)
+    cb(fake_sample(payload=b"a"))  # a drain is scheduled, and never runs
+    loop.close()
+    cb(fake_sample(payload=b"b"))  # the loop closed meanwhile: a and b are dropped, and counted
+    assert (cb.stats.dropped_closed, cb.stats.received, cb.stats.errors) == (2, 0, 0)
+    cb(fake_sample(payload=b"c"))
+    assert cb.stats.dropped_closed == 3 and cb.stats.errors == 0
+
+
 def test_bridge_logs_conversion_errors(caplog):
     loop = asyncio.new_event_loop()
     try:
