@@ -23,9 +23,10 @@ outside process may send anything). :func:`decode` checks, in this order, and ra
 6. the array names the schema lists for this kind (``keys``), their shapes (``shape``)
    and finite values (``nonfinite``).
 
-A decoded :class:`Message` owns its arrays (copies, never views into the input) and they
-are read-only. A :class:`Message` built locally is validated the same way when it is
-constructed, so :func:`encode` never puts an invalid message on the wire.
+A decoded :class:`Message`'s arrays are read-only views of the immutable bytes msgpack copies
+out of the input (never views into the caller's buffer, never writeable again). A
+:class:`Message` built locally is validated the same way when it is constructed, so
+:func:`encode` never puts an invalid message on the wire.
 """
 
 from __future__ import annotations
