@@ -294,12 +294,18 @@ def to_wire(msg: Message) -> dict[str, Any]:
 
     Public so that tests and fault injectors can corrupt a valid message field by field.
     """
-    arr = {name: [list(a.shape), a.tobytes() if _LITTLE else a.astype(_F8).tobytes()] for name, a in msg.arrays.items()}
-    wire: dict[str, Any] = {_K_VERSION: msg.version, _K_KIND: msg.kind, _K_FROM: msg.sender, _K_STAMP: msg.stamp, _K_ARR: arr}
-    if msg.receiver is not None:
-        wire[_K_TO] = msg.receiver
-    if msg.meta:
-        wire[_K_META] = dict(msg.meta)
+    return _wire(msg.version, msg.kind, msg.sender, msg.stamp, msg.arrays, msg.receiver, msg.meta)
+
+
+def _wire(version: int, kind: str, sender: int, stamp: int, arrays: Mapping[str, np.ndarray], receiver: int | None,
+          meta: Mapping[str, MetaValue] | None) -> dict[str, Any]:
+    """The msgpack map of checked fields (:func:`to_wire`, :func:`encode_fields`)."""
+    arr = {name: [list(a.shape), a.tobytes() if _LITTLE else a.astype(_F8).tobytes()] for name, a in arrays.items()}
+    wire: dict[str, Any] = {_K_VERSION: version, _K_KIND: kind, _K_FROM: sender, _K_STAMP: stamp, _K_ARR: arr}
+    if receiver is not None:
+        wire[_K_TO] = receiver
+    if meta:
+        wire[_K_META] = dict(meta)
     return wire
 
 
@@ -356,19 +362,10 @@ def encode_fields(
         raise _fail("type", f"arrays must be a mapping, got {type(arrays).__name__}")
     if len(arrays) > MAX_FIELDS:
         raise _fail("keys", f"{len(arrays)} arrays, at most {MAX_FIELDS}")
-    arr = {}
-    for name, value in arrays.items():
-        a = _freeze_array(name, value, copy=False)
-        arr[name] = [list(a.shape), a.tobytes() if _LITTLE else a.astype(_F8).tobytes()]
-    wire: dict[str, Any] = {_K_VERSION: VERSION, _K_KIND: kind, _K_FROM: sender, _K_STAMP: stamp, _K_ARR: arr}
-    if receiver is not None:
-        wire[_K_TO] = receiver
-    if meta is not None:
-        if not isinstance(meta, Mapping):
-            raise _fail("type", f"meta must be a mapping, got {type(meta).__name__}")
-        if meta:
-            wire[_K_META] = dict(_check_meta(dict(meta)))
-    return _packed(wire, max_bytes)
+    checked = {name: _freeze_array(name, value, copy=False) for name, value in arrays.items()}
+    if meta is not None and not isinstance(meta, Mapping):
+        raise _fail("type", f"meta must be a mapping, got {type(meta).__name__}")
+    return _packed(_wire(VERSION, kind, sender, stamp, checked, receiver, _check_meta(dict(meta)) if meta else None), max_bytes)
 
 
 # ------------------------------------------------------------------------------- decode
@@ -483,7 +480,9 @@ def _decode_array(name: str, entry: object, spec: ShapeSpec) -> np.ndarray:
     if len(raw) != 8 * count:
         raise _fail("shape", f"array {name!r} has {len(raw)} bytes, shape {shape} needs {8 * count}")
     # A read-only view of the immutable bytes, not a copy (native float64 on a little-endian host).
-    a = np.frombuffer(raw, dtype=_F8).reshape(shape) if _LITTLE else np.frombuffer(raw, dtype=_F8).reshape(shape).astype(np.float64)
+    a = np.frombuffer(raw, dtype=_F8).reshape(shape)
+    if not _LITTLE:
+        a = a.astype(np.float64)
     if not _all_finite(a):
         raise _fail("nonfinite", f"array {name!r} has non-finite values")
     a.setflags(write=False)

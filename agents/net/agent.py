@@ -156,18 +156,26 @@ class AgentProcess(Role):
             return None
         p, m = got
         j = p.sender
-        to, stamps = m.arrays["to"].tolist(), m.arrays["stamps"].tolist()
-        if (j not in self.part.merged or len(stamps) != len(to) or len(to) > self.part.N
-                or not all(v.is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
+        got_to = self._receivers(m) if j in self.part.merged else None
+        if got_to is None:
             self.rejects.add(j, "range")
             return None
-        receivers = [int(t) for t in to]
+        receivers, stamps = got_to
         if self.id in receivers:
             if j not in self.node.links:
                 self.rejects.add(j, "neighbour")
             else:
-                self._take(j, int(stamps[receivers.index(self.id)]), m.arrays["x"])
+                self._take(j, stamps[receivers.index(self.id)], m.arrays["x"])
         return j, m.stamp, m.arrays["x"], receivers
+
+    def _receivers(self, m: Any) -> tuple[list[int], list[int]] | None:
+        """A done report's receivers and stamps as ints, or None when they do not pair up,
+        are more than the team or are not whole numbers in the stamps' range."""
+        to, stamps = m.arrays["to"].tolist(), m.arrays["stamps"].tolist()
+        if (len(stamps) != len(to) or len(to) > self.part.N
+                or not all(v.is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
+            return None
+        return [int(t) for t in to], [int(st) for st in stamps]
 
     def _take(self, j: int, stamp: int, x: np.ndarray) -> None:
         """Hand a decoded estimate of in-neighbour ``j`` to the node (its channel decides)
@@ -198,12 +206,11 @@ class AgentProcess(Role):
             except MessageError as exc:
                 self.rejects.add(p.sender, exc.reason)
                 return
-            to, stamps = m.arrays["to"].tolist(), m.arrays["stamps"].tolist()
-            if (p.sender not in self.view.index_of or len(stamps) != len(to) or len(to) > self.part.N
-                    or not all(v.is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
+            got_to = self._receivers(m) if p.sender in self.view.index_of else None
+            if got_to is None:
                 self.rejects.add(p.sender, "range")
                 return
-            self.view.add_done(p.sender, m.stamp, [(int(t), int(st)) for t, st in zip(to, stamps)])
+            self.view.add_done(p.sender, m.stamp, list(zip(*got_to)))
             return
         j, receiver = p.sender, p.receiver
         mine = receiver == self.id or (receiver is None and j in self.node.links)
