@@ -40,7 +40,7 @@ from typing import Any, TypeVar
 
 import zenoh
 
-__all__ = ["BridgeStats", "make_bridge", "sample_to_item", "liveliness_to_item"]
+__all__ = ["BridgeStats", "deliver_to", "make_bridge", "sample_to_item", "liveliness_to_item"]
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +111,8 @@ class _Feeder:
         self.lock = threading.Lock()
         self.pending: list[tuple[Any, BridgeStats]] = []
         self.scheduled = False  # a _drain is on the loop's ready list
+        #: the queue's consumer, called with each batch while the queue is empty (see deliver_to)
+        self.direct: Callable[[list[Any]], None] | None = None
 
     def offer(self, item: Any, stats: BridgeStats, label: str) -> None:
         """On a Zenoh thread: queue ``item`` for the loop, or count why it cannot be
@@ -155,17 +157,32 @@ class _Feeder:
             batch, self.pending = self.pending, []
             self.scheduled = False
         queue = self.queue
-        received: dict[int, tuple[BridgeStats, int]] = {}
+        direct = self.direct
+        if direct is not None and queue.empty():  # nothing queued before this batch: keep the order
+            _add_received(batch)
+            try:
+                direct([item for item, _ in batch])
+            except Exception:  # the consumer's bug: logged, and the loop goes on
+                log.exception("bridge: the consumer failed on a batch of %d item(s)", len(batch))
+            return
+        queued = []
         for item, stats in batch:
             try:
                 queue.put_nowait(item)
             except asyncio.QueueFull:  # not expected (offer keeps the bound); counted if it happens
                 _count_full(stats, "")
             else:
-                got = received.get(id(stats))
-                received[id(stats)] = (stats, 1 if got is None else got[1] + 1)
-        for stats, n in received.values():
-            stats._add("received", n)
+                queued.append((item, stats))
+        _add_received(queued)
+
+
+def _add_received(batch: list[tuple[Any, BridgeStats]]) -> None:
+    received: dict[int, tuple[BridgeStats, int]] = {}
+    for _, stats in batch:
+        got = received.get(id(stats))
+        received[id(stats)] = (stats, 1 if got is None else got[1] + 1)
+    for stats, n in received.values():
+        stats._add("received", n)
 
 
 _feeders: "weakref.WeakKeyDictionary[asyncio.Queue[Any], _Feeder]" = weakref.WeakKeyDictionary()
@@ -178,6 +195,23 @@ def _feeder(loop: asyncio.AbstractEventLoop, queue: "asyncio.Queue[Any]") -> _Fe
         if f is None or f.loop is not loop:
             f = _feeders[queue] = _Feeder(loop, queue)
         return f
+
+
+def deliver_to(loop: asyncio.AbstractEventLoop, queue: "asyncio.Queue[Any]",
+               consumer: Callable[[list[Any]], None]) -> Callable[[], None]:
+    """Hand the batches of the bridges into ``queue`` straight to ``consumer(items)`` on
+    ``loop``'s thread, in the call that would have queued them, while the queue is empty
+    (items already queued go first: the batch is queued behind them). Spares the queue's
+    future and the consuming task's wake-up per batch. ``consumer`` must not block; an
+    exception it raises is logged. Returns the function that undoes this."""
+    f = _feeder(loop, queue)
+    f.direct = consumer
+
+    def undo() -> None:
+        if f.direct is consumer:
+            f.direct = None
+
+    return undo
 
 
 def _count_full(stats: BridgeStats, label: str) -> None:

@@ -294,13 +294,26 @@ class Role:
             log.exception("%s: error while handling a message", self.name)
 
     async def consume(self) -> None:
+        """Handle what the bus brings: each batch of a Zenoh bus straight from its bridges
+        (:func:`~transport.bridge.deliver_to`), anything else through the queue."""
+        from transport.bridge import deliver_to  # imports zenoh: only where a role runs
+
         q = self.queue
-        while True:
-            self.handle(await q.get())
-            while not q.empty():
-                self.handle(q.get_nowait())
-            if self.after_batch():
-                self.changed.set()
+        undo = deliver_to(asyncio.get_running_loop(), q, self.handle_batch)
+        try:
+            while True:
+                batch = [await q.get()]
+                while not q.empty():
+                    batch.append(q.get_nowait())
+                self.handle_batch(batch)
+        finally:
+            undo()
+
+    def handle_batch(self, items: list[Any]) -> None:
+        for item in items:
+            self.handle(item)
+        if self.after_batch():
+            self.changed.set()
 
     def after_batch(self) -> bool:
         """Called by the consumer after each batch of messages; returns whether the role's
