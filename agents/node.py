@@ -41,7 +41,7 @@ class AgentNode:
         #: what an omniscient adversary may read (set by the driver for Byzantine agents)
         self.view: Any = None
         #: the estimate itself is the payload (no separate ``estimator.estimate`` call)
-        self.payload_is_estimate = isinstance(estimator, EstimatePayload)
+        self.payload_is_estimate = isinstance(estimator, EstimatePayload) and bool(estimator.payload_is_estimate)
         self.inbox: dict[int, Received] = {}
         #: indices of the in-neighbours whose message became visible in the current round
         self.arrived: set[int] = set()

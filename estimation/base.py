@@ -73,7 +73,16 @@ class Estimator(Protocol):
 class EstimatePayload:
     """The published payload is the estimate ``x_hat_i[k]`` itself (shape ``(n,)``): a
     driver records it without reading ``estimate`` and, in lockstep, may carry it in the
-    agent's done report instead of a second message."""
+    agent's done report instead of a second message.
+
+    An estimator whose payload is the estimate in some configurations only inherits this
+    and says which in :attr:`payload_is_estimate` (LFRE: its modal estimate ``z_hat`` is
+    ``x_hat`` when the modal transform is the identity)."""
+
+    @property
+    def payload_is_estimate(self) -> bool:
+        """Whether this instance's payload is its estimate (equal values, every round)."""
+        return True
 
 
 class MaskedInputs(ABC):

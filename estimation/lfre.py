@@ -51,7 +51,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .base import Inbox, MaskedInputs
+from .base import EstimatePayload, Inbox, MaskedInputs
 from .batching import Batch, Batchable
 from .errors import DesignError
 from .lfre_batch import FusionBatch
@@ -208,7 +208,7 @@ def lfre_update(z_prev: np.ndarray, fused: np.ndarray, lam: np.ndarray, *, gap: 
 # ------------------------------------------------------------------------- estimators
 
 
-class _ModalFusion(Batchable, MaskedInputs):
+class _ModalFusion(Batchable, MaskedInputs, EstimatePayload):
     """Shared state and round logic of :class:`LFRE` and :class:`SWLFRE`.
 
     Batchable: agents with the same fusion rule and ``f`` are stepped together by
@@ -284,6 +284,13 @@ class _ModalFusion(Batchable, MaskedInputs):
         """``x_hat_i[k] = V z_hat_i[k]``, shape ``(n,)`` (a new array)."""
         eye = self.design.modal.is_identity
         return self._z.copy() if eye else self.design.modal.V @ self._z
+
+    @property
+    def payload_is_estimate(self) -> bool:
+        """The payload ``z_hat`` is the estimate ``x_hat = V z_hat`` when ``V`` is the
+        identity (a diagonal process: ``mitra_cells.toml``); :attr:`estimate` is then a
+        copy of it."""
+        return self.design.modal.is_identity
 
     @property
     def modal_estimate(self) -> np.ndarray:

@@ -170,3 +170,30 @@ def test_omniscient_adversary_does_not_hear_its_own_addressed_messages(monkeypat
     assert not [p for p in mine for j in outs if key_matches(p, keys.est(me, j))]
     others = [exp.agent_ids[i] for i in exp.in_neighbours(exp.out_neighbours(b)[0]) if i != b]
     assert any(key_matches(p, keys.est(s, outs[0])) for p in mine for s in others)
+
+
+@pytest.mark.parametrize("scenario, merged", [("mitra_cells.toml", True), ("mitra_diffusion.toml", False)])
+def test_an_lfre_agent_sends_its_estimate_once_when_the_payload_is_the_estimate(monkeypatch, scenario, merged):
+    """LFRE's payload is its modal estimate z_hat, the estimate itself when the modal
+    transform is the identity (mitra_cells.toml, a diagonal process): an honest agent's
+    done report then carries it and no estimate message goes out. mitra_diffusion.toml
+    (x_hat = V z_hat, V not the identity) sends both. Both equal the simulator."""
+    from transport.zenoh_bus import InMemoryBus
+
+    sent: list[str] = []
+    plain = InMemoryBus.publish
+
+    def recording(self, key, payload, *, droppable=False):
+        sent.append(key)
+        plain(self, key, payload, droppable=droppable)
+
+    monkeypatch.setattr(InMemoryBus, "publish", recording)
+    ov = ("attacks=[]", "expect=[]", "run.rounds=20")
+    ref, res = _both(SCENARIOS / scenario, ov)
+    assert _rel(res.estimates, ref.estimates, ref.truth) <= 1e-12
+    assert res.summary["links"] == ref.links
+    exp, _ = load_experiment(SCENARIOS / scenario, ov, None)
+    per_agent = {aid: sum(k.endswith(f"/agent/{aid}/est") for k in sent) for aid in exp.agent_ids}
+    done = {aid: sum(k.endswith(f"/ctl/done/{aid}") for k in sent) for aid in exp.agent_ids}
+    assert set(done.values()) == {21}  # one report per round, rounds 0..20
+    assert set(per_agent.values()) == ({0} if merged else {21}), per_agent

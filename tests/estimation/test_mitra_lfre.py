@@ -177,3 +177,20 @@ def test_design_errors_name_the_mode_and_agents():
     blind = [Patrol((0, 1, 2, 3, 4), (0, 1, 2, 3, 4), (7,) * 5, agent=a) for a in range(8)]
     with pytest.raises(DesignError, match=r"mode 14 .*no agent's patrol observes this mode"):
         design(m.A, m.loc_C, blind, adj, f=1, blocks=m.blocks, block_names=m.block_names)
+
+
+@pytest.mark.parametrize("rule", ["lfre", "sw_lfre"])
+def test_the_payload_is_the_estimate_when_the_modal_transform_is_the_identity(rule):
+    """cells() is a diagonal process: z_hat is x_hat, so the payload may stand for the
+    estimate (a lockstep done report carries it instead of a second message)."""
+    from estimation.base import EstimatePayload
+
+    _, des, _ = team()
+    assert des.modal.is_identity
+    est = make_estimator(des, agent=0, rule=rule)
+    assert isinstance(est, EstimatePayload) and est.payload_is_estimate
+    rng = np.random.default_rng(1)
+    for k in range(6):
+        inbox = {j: Received(j, k - 1, rng.normal(size=des.n)) for j in (4, 5, 8)} if k else {}
+        out = est.step(k, None, inbox)
+        np.testing.assert_array_equal(out, est.estimate)
