@@ -472,18 +472,22 @@ def _decode_array(name: str, entry: object, spec: ShapeSpec) -> np.ndarray:
         raise _fail("type", f"array {name!r} must be [list of ints, bytes]")
     count = 1
     for d in shape_list:
-        if not _is_int(d) or not 0 <= d <= MAX_DIM:
+        if type(d) is not int or not 0 <= d <= MAX_DIM:  # _is_int, inlined (hot)
             raise _fail("type", f"array {name!r} has an invalid dimension {d!r:.40}")
         count *= d
     shape = tuple(shape_list)
-    _check_shape(name, shape, spec)
+    if shape != spec:
+        _check_shape(name, shape, spec)
     if len(raw) != 8 * count:
         raise _fail("shape", f"array {name!r} has {len(raw)} bytes, shape {shape} needs {8 * count}")
-    # A read-only view of the immutable bytes, not a copy (native float64 on a little-endian host).
-    a = np.frombuffer(raw, dtype=_F8).reshape(shape)
+    # A view of the immutable bytes, not a copy (native float64 on a little-endian host):
+    # read-only, as a view of bytes always is (a vector needs no reshape).
+    a = np.frombuffer(raw, dtype=_F8)
+    if len(shape) != 1:
+        a = a.reshape(shape)
     if not _LITTLE:
         a = a.astype(np.float64)
+        a.setflags(write=False)
     if not _all_finite(a):
         raise _fail("nonfinite", f"array {name!r} has non-finite values")
-    a.setflags(write=False)
     return a
