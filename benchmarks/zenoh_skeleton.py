@@ -1,7 +1,8 @@
 """The bare Zenoh lockstep skeleton: ``rse run``'s processes and messages, no estimation.
 
 The yardstick of ``rse bench run``: the same processes (plant, monitor, one per agent,
-spawned, one Zenoh peer session each on loopback, the same asyncio bridge), the same
+spawned, one Zenoh peer session each on loopback, the same asyncio bridge on the same
+event loop, :mod:`transport.event_loop`), the same
 keys, the same message pattern per round and the same payload sizes as the runtime's
 encoded messages, but payloads are opaque bytes (a round stamp in the first 8 bytes,
 padding after), nothing is decoded and nothing is estimated::
@@ -285,7 +286,9 @@ async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: 
 
 
 def _child(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: Any, conn: Any, minimal: bool = False) -> None:
-    asyncio.run(_main(role, idx, sizes, rounds, run, opts, conn, minimal))
+    from transport.event_loop import run as run_loop
+
+    run_loop(_main(role, idx, sizes, rounds, run, opts, conn, minimal))  # the runtime's event loop
     os._exit(0)
 
 

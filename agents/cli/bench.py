@@ -93,6 +93,8 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
     """
     import time
 
+    from transport.event_loop import loop_name
+
     from ..console import out as console
     from ..net.launcher import launch
     from ..net.protocol import RunConfig
@@ -126,7 +128,7 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
                                                    if agents_per_process > 1 else ""))
             console.print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
                           f"Python {platform.python_version()}, {platform.system()} {platform.release()}, "
-                          f"load average {os.getloadavg()[0]:.1f}")
+                          f"load average {os.getloadavg()[0]:.1f}, event loop {loop_name()}")
         mini = full = None
         if run_skeleton is not None:
             mini = run_skeleton(sizes, rounds=perf["rounds"], minimal=True)["rounds_per_s"]

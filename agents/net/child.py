@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from estimation.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError, TransportError, describe, exit_status
+from transport.event_loop import run as run_loop
 
 from .parent import die_with_parent as _die_with_parent
 from .protocol import RunConfig
@@ -103,6 +104,7 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
 
     loop = asyncio.get_running_loop()
     task = asyncio.current_task()
+    log.debug("event loop: %s", type(loop).__module__.partition(".")[0])  # uvloop or asyncio (transport.event_loop)
 
     def stop() -> None:
         # cancelled until it is done: asyncio.wait_for of Python 3.11 can swallow a
@@ -225,11 +227,11 @@ def run_role(spec: ChildSpec) -> int:
 
             prof = cProfile.Profile(time.thread_time)  # CPU of this thread, not waits
             try:
-                prof.runcall(asyncio.run, _role_main(spec, exp))
+                prof.runcall(run_loop, _role_main(spec, exp))
             finally:
                 prof.dump_stats(os.path.join(prof_dir, spec.label.replace(" ", "-") + ".prof"))
         else:
-            asyncio.run(_role_main(spec, exp))
+            run_loop(_role_main(spec, exp))  # on uvloop where installed (transport.event_loop)
         return EXIT_OK
     except (KeyboardInterrupt, asyncio.CancelledError):
         return EXIT_INTERRUPTED

@@ -16,7 +16,7 @@ from estimation.errors import ScenarioError
 
 #: what the fork server imports once for every child it forks (an agent needs nothing else
 #: but its estimator's module); the plant and monitor import the rest of theirs after the fork
-PRELOAD = ["numpy", "msgpack", "zenoh", "transport.codec", "transport.keys", "transport.zenoh_bus",
+PRELOAD = ["numpy", "msgpack", "zenoh", "transport.event_loop", "uvloop", "transport.codec", "transport.keys", "transport.zenoh_bus",
            "transport.zenoh_session", "transport.channel", "transport.byzantine", "agents.node", "agents.net.child",
            "agents.net.agent", "agents.net.plant", "agents.net.slices",
            # the built-in estimators (numpy only at import; an agent unpickles one of them)
@@ -35,6 +35,9 @@ def prestart() -> None:
     fork server and its resource tracker are stopped when this process exits
     (:func:`stop_helpers`)."""
     child_env()
+    from transport.event_loop import loop_factory
+
+    loop_factory()  # a bad RSE_EVENT_LOOP is one error here, not one per child
     ctx = context()
     if ctx.get_start_method() == "forkserver":
         from multiprocessing import forkserver

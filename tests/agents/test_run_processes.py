@@ -5,6 +5,7 @@ Every test is bounded (under 60 s) and kills its whole process group in ``finall
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
@@ -279,6 +280,7 @@ def test_bench_run_repeats_and_prints_the_median_ratio(procs):
     assert m and [int(x) for x in m.groups()[1:]] == ratios, text
     assert abs(int(m.group(1)) - sorted(ratios)[1]) <= 1, text  # the median of the unrounded ratios
     assert "agent processes: peak RSS" in text
+    assert re.search(r"event loop (uvloop [0-9.]+|asyncio)", text), text
 
 
 def test_bad_input_is_one_line(procs, tmp_path):
@@ -288,3 +290,18 @@ def test_bad_input_is_one_line(procs, tmp_path):
     p = procs.start(_cmd("agent", "--id", "3", "--team", str(tmp_path / "nope")))
     so, se = p.communicate(timeout=30)
     assert p.returncode == 2 and "no such team file" in se and "Traceback" not in se
+
+
+@pytest.mark.parametrize("choice", ["", "asyncio"])
+def test_the_team_runs_on_uvloop_unless_asyncio_is_asked_for(procs, tmp_path, monkeypatch, choice):
+    """Every process of the team (plant, monitor, agents) runs its role on the loop of
+    transport.event_loop: uvloop where installed, asyncio's own with RSE_EVENT_LOOP=asyncio."""
+    expected = choice or ("uvloop" if importlib.util.find_spec("uvloop") else "asyncio")
+    monkeypatch.setenv("RSE_EVENT_LOOP", choice)
+    monkeypatch.setenv("RSE_NET_DEBUG", "1")  # the children log their loop at debug level
+    p = procs.start(_cmd("run", str(LKS), "--set", "run.duration=0.3", "--set", "expect=[]", "--out",
+                         str(tmp_path / "r"), "--no-progress", "--no-rerun"))
+    so, se = p.communicate(timeout=60)
+    assert p.returncode == 0, se[-2000:]
+    loops = dict(re.findall(r"rse (plant|monitor|agent \d+): event loop: (\w+)", se))
+    assert loops == {**{f"agent {i}": expected for i in range(1, 6)}, "plant": expected, "monitor": expected}, se[-2000:]
