@@ -10,9 +10,10 @@ handlers); both loops run them alike.
 Why: a lockstep round of ``mitra_cells.toml`` wakes each agent's loop three to four times
 (its measurement and its in-neighbours' reports, handed over by :mod:`transport.bridge`),
 and asyncio's wake-up (a byte through its self-pipe, ``epoll``, two ``recv`` calls and an
-exception per wake-up) was a visible share of an agent's main thread. On uvloop the CPU of
-a 1000-round run fell from 22.6 and 20.2 s to 18.6 and 18.1 s (interleaved) and ``rse bench
-run`` went from 71 to 94 rounds/s (the README has the figures).
+exception per wake-up) was a visible share of an agent's main thread. Whole ``rse run``
+commands on uvloop against asyncio, paired runs: ``mitra_cells.toml`` (1000 rounds) 0.92
+of the CPU and of the wall time, ``lee_kim_shim.toml --set run.dt=0.01`` 0.89 and 0.90
+(docs/networked-runtime.md has the figures).
 
 ``RSE_EVENT_LOOP=asyncio`` picks asyncio's loop (``uvloop`` asks for uvloop and fails when
 it is not installed). The launcher's children inherit the variable.
