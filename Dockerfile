@@ -63,7 +63,7 @@ print(*p['dependencies'], *(r for e in sys.argv[1].split(',') if e for r in p['o
 # and its messages, psutil for the health check)
 FROM base AS agent-deps
 ARG PIP_INDEX_URL PIP_EXTRA_INDEX_URL PIP_TRUSTED_HOST
-RUN pip install "numpy>=1.26" "eclipse-zenoh>=1.0" "msgpack>=1.0" "click>=8.1" "rich>=13" "psutil>=5.9"
+RUN pip install "numpy>=1.26" "eclipse-zenoh>=1.0" "uvloop>=0.19; sys_platform != 'win32'" "msgpack>=1.0" "click>=8.1" "rich>=13" "psutil>=5.9"
 
 # the monitor's on top: the Rerun recording and stream, the metrics table, and pydantic (the
 # built experiment it reads holds the validated scenario: its bounds, its names). rerun_cli

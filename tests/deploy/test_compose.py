@@ -414,7 +414,7 @@ def test_dockerfile_role_images_install_requirements_of_pyproject():
         return out
 
     agent, monitor = installed("agent-deps"), installed("monitor-deps")
-    assert {re.split(r"[<>=!~]", r)[0] for r in agent} == {"numpy", "eclipse-zenoh", "msgpack", "click", "rich", "psutil"}
+    assert {re.split(r"[<>=!~]", r)[0] for r in agent} == {"numpy", "eclipse-zenoh", "uvloop", "msgpack", "click", "rich", "psutil"}
     # pydantic: the built experiment the monitor reads holds the validated scenario
     assert {re.split(r"[<>=!~]", r)[0] for r in monitor} == {"rerun-sdk", "pyarrow", "pydantic"}
     for r in agent + monitor:
