@@ -188,19 +188,20 @@ def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None =
     """
     from .simulate import simulate as run_sim
 
-    rec = None
+    rec = d = None
     if out is not None:
-        from .recorder import Recorder
-        from .rundir import write_design, write_manifest
-
         d = Path(out)
         d.mkdir(parents=True, exist_ok=True)
         (d / "summary.json").unlink(missing_ok=True)  # a new run: not the summary of an earlier one
-        if not (d / "manifest.json").is_file():
-            write_manifest(d, exp, exp.frozen, driver="simulate", run_id=uuid.uuid4().hex[:12])
-        write_design(d, exp)
-        rec = dashboard = Recorder(d, exp, dashboard=dashboard)
     try:
+        if d is not None:
+            from .recorder import Recorder
+            from .rundir import write_design, write_manifest
+
+            if not (d / "manifest.json").is_file():
+                write_manifest(d, exp, exp.frozen, driver="simulate", run_id=uuid.uuid4().hex[:12])
+            write_design(d, exp)
+            rec = dashboard = Recorder(d, exp, dashboard=dashboard)
         res = run_sim(exp, progress=progress, dashboard=dashboard, batched=batched, keep_trajectories=keep_trajectories)
         summary, results = _summarise_sim(exp, res)
         result = RunResult(exp, summary, results, driver="simulate", sim=res)
@@ -208,11 +209,25 @@ def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None =
             result.save(rec.run_dir)
             rec.done()
     except BaseException as exc:
-        if rec is not None:
+        if d is not None:
             with deferred_signals():
-                rec.abort(ended_by(exc))
+                if rec is not None:
+                    rec.abort(ended_by(exc))
+                else:  # ended while the directory was begun: no round recorded, the stream not up
+                    _abort_begun(d, exp, ended_by(exc))
         raise
     return result
+
+
+def _abort_begun(d: Path, exp: Experiment, reason: str) -> None:
+    """A run that ended before its recorder was up (a signal while ``manifest.json``,
+    ``design.json`` or the stream's first segment was being written): ``summary.json`` with
+    ``complete: false`` and no partial stream (it holds no round)."""
+    from .recorder import drop_partial, incomplete_summary, regular_mask
+    from .rundir import write_json
+
+    write_json(d / "summary.json", incomplete_summary(exp, None, regular_mask(exp), reason=reason))
+    drop_partial(d)
 
 
 def ended_by(exc: BaseException) -> str:

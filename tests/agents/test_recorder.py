@@ -60,6 +60,31 @@ def test_a_run_ended_early_leaves_its_rounds_and_says_so(exp, tmp_path):
     assert "INCOMPLETE: interrupted (SIGTERM), last round recorded 512" in p.stdout.replace("\n", "")
 
 
+@pytest.mark.parametrize("where", ["design", "stream"])
+def test_a_run_ended_while_its_directory_is_begun_says_so_and_leaves_no_stream(exp, tmp_path, monkeypatch, where):
+    """A signal after manifest.json, while design.json or the stream's first segment is being
+    written (the recorder not up yet): summary.json says so and no partial stream is left
+    (seen once in a fresh CI run of `rse simulate` interrupted by SIGTERM at that moment)."""
+    import agents.recorder
+    import agents.rundir
+
+    def interrupted(*args, **kw):
+        (tmp_path / "run" / PARTIAL).mkdir(exist_ok=True)  # what the stream had begun
+        raise KeyboardInterrupt("SIGTERM")
+
+    if where == "design":
+        monkeypatch.setattr(agents.rundir, "write_design", interrupted)
+    else:
+        monkeypatch.setattr(agents.recorder.MetricsStream, "__init__", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        api.simulate(exp, out=tmp_path / "run")
+    d = tmp_path / "run"
+    assert (d / "manifest.json").exists()
+    s = json.loads((d / "summary.json").read_text())
+    assert s["complete"] is False and s["reason"] == "interrupted (SIGTERM)" and s["last_round"] == -1
+    assert not (d / PARTIAL).exists()
+
+
 def test_the_reader_stops_at_a_torn_last_batch(exp, tmp_path):
     """A writer killed in the middle of a batch: every complete batch is read."""
     mon = Monitor(exp)
