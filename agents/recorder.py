@@ -171,6 +171,21 @@ def incomplete_summary(exp: Any, mon: Monitor | None, regular: np.ndarray, *, re
             "agents": {}, "worst_regular": {}, "links": links or {}, "rejected": rejected or {}}
 
 
+def write_incomplete(run_dir: Path, exp: Any, mon: Monitor | None, regular: np.ndarray, *, reason: str,
+                     links: dict | None = None, rejected: dict | None = None) -> None:
+    """The files of a run that ended early: with rounds recorded in ``mon``, as
+    :func:`write_run` (``summary.json`` with ``complete: false``); without (``mon`` None or
+    empty), the header of a summary only, and the partial stream (no round in it) removed."""
+    summary = incomplete_summary(exp, mon, regular, reason=reason, links=links, rejected=rejected)
+    if mon is not None and mon.last_round >= 0:
+        write_run(run_dir, exp, mon, regular, summary)
+    else:
+        from .rundir import write_json
+
+        write_json(run_dir / "summary.json", summary)
+        drop_partial(run_dir)
+
+
 class Recorder:
     """The run directory's writer during a run: streams the monitor's flushed rounds to
     the partial stream (and on to ``dashboard`` when given) and, when the run ends early,
@@ -215,14 +230,7 @@ class Recorder:
         mon = self.mon
         if mon is not None:
             mon.flush()
-        summary = incomplete_summary(self.exp, mon, self.regular, reason=reason, links=links, rejected=rejected)
-        if mon is not None and mon.last_round >= 0:
-            write_run(self.run_dir, self.exp, mon, self.regular, summary)
-        else:
-            from .rundir import write_json
-
-            write_json(self.run_dir / "summary.json", summary)
-            drop_partial(self.run_dir)
+        write_incomplete(self.run_dir, self.exp, mon, self.regular, reason=reason, links=links, rejected=rejected)
 
 
 def salvage(run_dir: str | Path, exp: Any, *, reason: str) -> bool:
@@ -235,14 +243,6 @@ def salvage(run_dir: str | Path, exp: Any, *, reason: str) -> bool:
     table = read_partial(d)
     mon = Monitor(exp)
     load_into(mon, table)
-    regular = regular_mask(exp)
-    summary = incomplete_summary(exp, mon, regular, reason=reason)
-    if mon.last_round >= 0:
-        write_run(d, exp, mon, regular, summary)
-    else:
-        from .rundir import write_json
-
-        write_json(d / "summary.json", summary)
-        drop_partial(d)
+    write_incomplete(d, exp, mon, regular_mask(exp), reason=reason)
     return True
 

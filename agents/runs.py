@@ -213,21 +213,13 @@ def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None =
             with deferred_signals():
                 if rec is not None:
                     rec.abort(ended_by(exc))
-                else:  # ended while the directory was begun: no round recorded, the stream not up
-                    _abort_begun(d, exp, ended_by(exc))
+                else:  # ended while the directory was begun (manifest, design, the stream's first
+                    # segment): no round recorded
+                    from .recorder import regular_mask, write_incomplete
+
+                    write_incomplete(d, exp, None, regular_mask(exp), reason=ended_by(exc))
         raise
     return result
-
-
-def _abort_begun(d: Path, exp: Experiment, reason: str) -> None:
-    """A run that ended before its recorder was up (a signal while ``manifest.json``,
-    ``design.json`` or the stream's first segment was being written): ``summary.json`` with
-    ``complete: false`` and no partial stream (it holds no round)."""
-    from .recorder import drop_partial, incomplete_summary, regular_mask
-    from .rundir import write_json
-
-    write_json(d / "summary.json", incomplete_summary(exp, None, regular_mask(exp), reason=reason))
-    drop_partial(d)
 
 
 def ended_by(exc: BaseException) -> str:

@@ -347,15 +347,12 @@ class MonitorProcess(Role):
             if self.mon.last_round >= 0:
                 self._finish(complete=False, reason=reason)
             else:  # nothing recorded: the header of a summary only
-                from agents.recorder import drop_partial, incomplete_summary
+                from agents.recorder import write_incomplete
                 from agents.rounds import regular_mask
-                from agents.rundir import write_json
 
                 if self.stream is not None:
                     self.stream.close()
-                write_json(self.out_dir / "summary.json", incomplete_summary(self.exp, None, regular_mask(self.exp),
-                                                                             reason=reason))
-                drop_partial(self.out_dir)
+                write_incomplete(self.out_dir, self.exp, None, regular_mask(self.exp), reason=reason)
         except Exception:  # the original exception is what the caller must see
             log.exception("monitor: could not write the run directory")
 
