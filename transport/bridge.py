@@ -16,6 +16,12 @@ Zenoh thread::
     sub = session.declare_subscriber(keys.est_pattern(), make_bridge(loop, queue, stats=stats))
     key, payload = await queue.get()
 
+* Lazy: a consumer that knows when it needs its messages registers a predicate with
+  :func:`batch_lazily`; an item it accepts then waits without waking the loop until a
+  given number of items wait or an item it does not accept comes (a lockstep agent needs
+  its in-neighbours' reports only with its next measurement: the measurement wakes it and
+  the reports come in the same batch). The consumer sets that number as it goes
+  (``wake_at(1)``: every item wakes it again).
 * Direct: a consumer that registers with :func:`deliver_to` takes each burst in the call
   that would have queued it (while nothing is queued before it), sparing the queue's future
   and a wake-up of the consuming task per burst; the roles of ``rse run`` do (with the
@@ -45,7 +51,7 @@ from typing import Any, TypeVar
 
 import zenoh
 
-__all__ = ["BridgeStats", "deliver_to", "make_bridge", "sample_to_item", "liveliness_to_item"]
+__all__ = ["BridgeStats", "batch_lazily", "deliver_to", "make_bridge", "sample_to_item", "liveliness_to_item"]
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +114,9 @@ class _Feeder:
     """The hand-over of every bridge into one queue: items wait in a list and the loop
     takes them in one call, so a burst of samples (a round's reports from several
     neighbours) costs one ``call_soon_threadsafe`` and one wake-up of the loop, not one
-    per sample. Items waiting count against the queue's ``maxsize``."""
+    per sample. Items waiting count against the queue's ``maxsize``. With a ``lazy``
+    predicate (:func:`batch_lazily`) an item it accepts wakes the loop only once
+    ``wake_at`` items wait."""
 
     def __init__(self, loop: asyncio.AbstractEventLoop, queue: "asyncio.Queue[Any]") -> None:
         self.loop = loop
@@ -118,6 +126,8 @@ class _Feeder:
         self.scheduled = False  # a _drain is on the loop's ready list
         #: the queue's consumer, called with each batch while the queue is empty (see deliver_to)
         self.direct: Callable[[list[Any]], None] | None = None
+        self.lazy: Callable[[Any], bool] | None = None
+        self.wake_at = 1  # items waiting at which a lazy one wakes the loop too
 
     def offer(self, item: Any, stats: BridgeStats, label: str) -> None:
         """On a Zenoh thread: queue ``item`` for the loop, or count why it cannot be
@@ -130,11 +140,14 @@ class _Feeder:
             full = len(self.pending) + queue.qsize() >= queue.maxsize
             if not full:
                 self.pending.append((item, stats))
-                schedule, self.scheduled = not self.scheduled, True
+                lazy = self.lazy
+                schedule = not self.scheduled and (lazy is None or len(self.pending) >= self.wake_at or not lazy(item))
+                if schedule:
+                    self.scheduled = True
         if full:
             _count_full(stats, label)
             return
-        if not schedule:  # a drain is on its way, unless the loop closed before running it
+        if not schedule:  # a drain is on its way (or the consumer waits for more), unless the loop closed
             if self.loop.is_closed():
                 self._drop_pending(label, None)
             return
@@ -142,6 +155,17 @@ class _Feeder:
             self.loop.call_soon_threadsafe(self._drain)
         except Exception as exc:
             self._drop_pending(label, exc)
+
+    def set_wake_at(self, n: int) -> None:
+        """On the loop's thread: lazy items wake the loop once ``n`` wait; if as many wait
+        already, they are taken now (in a callback of the loop, not in this call)."""
+        with self.lock:
+            self.wake_at = n
+            go = len(self.pending) >= n and bool(self.pending) and not self.scheduled
+            if go:
+                self.scheduled = True
+        if go:
+            self.loop.call_soon(self._drain)
 
     def _drop_pending(self, label: str, exc: Exception | None) -> None:
         """The items waiting can no longer reach the loop: count each (closed loop) or
@@ -217,6 +241,20 @@ def deliver_to(loop: asyncio.AbstractEventLoop, queue: "asyncio.Queue[Any]",
             f.direct = None
 
     return undo
+
+
+def batch_lazily(loop: asyncio.AbstractEventLoop, queue: "asyncio.Queue[Any]",
+                 lazy: Callable[[Any], bool]) -> Callable[[int], None]:
+    """Let the items into ``queue`` for which ``lazy(item)`` holds (called on a Zenoh
+    thread: cheap, and never raising) wait without waking ``loop`` until ``n`` items wait,
+    or until an item ``lazy`` refuses comes: then all waiting items go in one batch, in
+    their order of arrival. Returns ``wake_at(n)`` (on the loop's thread; it takes the
+    waiting items at once when ``n`` already wait); ``n`` starts at 1, which is the
+    behaviour without this call. A consumer that waits for a lazy item must ask for it
+    with ``wake_at(1)`` first."""
+    f = _feeder(loop, queue)
+    f.lazy = lazy
+    return f.set_wake_at
 
 
 def _count_full(stats: BridgeStats, label: str) -> None:

@@ -19,7 +19,7 @@ from transport.codec import PLANT_ID, Schema, decode
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import RECONNECTS, UNHEARD_S, Role, RunConfig, _msg, diagnostics_meta
+from .protocol import LAZY, RECONNECTS, UNHEARD_S, Role, RunConfig, _msg, diagnostics_meta, receivers_of
 from .view import NetworkView, reads_view
 
 if TYPE_CHECKING:
@@ -96,6 +96,13 @@ class AgentProcess(Role):
             elif self.stop is None:
                 log.warning("agent %d: the plant left", self.id)
 
+    def lazy_items(self) -> Callable[[Any], bool] | None:
+        # lockstep: what the next round needs comes before its measurement, which wakes
+        # this agent; an omniscient adversary (a view) waits for reports, not measurements
+        loc = self._loc_key
+        ok = self.cfg.mode == "lockstep" and self.view is None
+        return (lambda item: item[0] != loc and type(item[1]) is bytes) if ok else None
+
     def handle_data(self, key: str, payload: bytes) -> None:
         if key == self._loc_key:
             got = self.decode(key, payload, self.wire.loc)
@@ -121,6 +128,7 @@ class AgentProcess(Role):
                 log.info("agent %d: joined the team at round %d", self.id, m.stamp)
             elif not member and self.member:
                 self.member = False
+                self.wake_at(1)
                 log.warning("agent %d: the plant no longer counts this agent; rejoining", self.id)
             if not self.member or m.stamp <= self.last:
                 return
@@ -156,7 +164,7 @@ class AgentProcess(Role):
             return None
         p, m = got
         j = p.sender
-        got_to = self._receivers(m) if j in self.part.merged else None
+        got_to = receivers_of(m, self.part.N) if j in self.part.merged else None
         if got_to is None:
             self.rejects.add(j, "range")
             return None
@@ -167,15 +175,6 @@ class AgentProcess(Role):
             else:
                 self._take(j, stamps[receivers.index(self.id)], m.arrays["x"])
         return j, m.stamp, m.arrays["x"], receivers
-
-    def _receivers(self, m: Any) -> tuple[list[int], list[int]] | None:
-        """A done report's receivers and stamps as ints, or None when they do not pair up,
-        are more than the team or are not whole numbers in the stamps' range."""
-        to, stamps = m.arrays["to"].tolist(), m.arrays["stamps"].tolist()
-        if (len(stamps) != len(to) or len(to) > self.part.N
-                or not all(v.is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
-            return None
-        return [int(t) for t in to], [int(st) for st in stamps]
 
     def _take(self, j: int, stamp: int, x: np.ndarray) -> None:
         """Hand a decoded estimate of in-neighbour ``j`` to the node (its channel decides)
@@ -206,7 +205,7 @@ class AgentProcess(Role):
             except MessageError as exc:
                 self.rejects.add(p.sender, exc.reason)
                 return
-            got_to = self._receivers(m) if p.sender in self.view.index_of else None
+            got_to = receivers_of(m, self.part.N) if p.sender in self.view.index_of else None
             if got_to is None:
                 self.rejects.add(p.sender, "range")
                 return
@@ -307,6 +306,7 @@ class AgentProcess(Role):
                 k = min(self.meas)
                 y, wait, t_arr = self.meas[k]
                 if not self._arrived_all(wait):
+                    self.wake_at(1)  # each message may be the one missing
                     if now < t_arr + self.cfg.deadline:
                         self._tick_at(t_arr + self.cfg.deadline)
                         return
@@ -334,9 +334,12 @@ class AgentProcess(Role):
         if self.stop is not None and not self.meas:
             K, wait, t_arr = self.stop
             if lockstep and self.member and not self._arrived_all(wait) and now < t_arr + self.cfg.deadline:
+                self.wake_at(1)
                 self._tick_at(t_arr + self.cfg.deadline)
                 return
             self.finished.set()
+        elif self.member and not self.meas:
+            self.wake_at(LAZY)  # until the next measurement
 
     def after_batch(self) -> bool:
         # a member runs its rounds right here (the main loop wakes only when it must)

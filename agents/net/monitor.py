@@ -92,6 +92,17 @@ class MonitorProcess(Role):
             return super().after_batch()
         return self.stop_round is not None or self.next_k == 0 or ("plant", 0) not in self.alive
 
+    #: lockstep: the monitor takes the reports and the truth in batches of this many messages
+    BATCH = 64
+
+    def lazy_items(self) -> Callable[[Any], bool] | None:
+        # lockstep: recorded in batches (the plant waits for this monitor only when it
+        # falls MAX_AHEAD rounds behind)
+        if self.cfg.mode != "lockstep":
+            return None
+        self.wake_at(self.BATCH)
+        return lambda item: type(item[1]) is bytes and ("/ctl/done/" in item[0] or item[0].endswith("/plant/truth"))
+
     def _setup_dashboard(self, dash: Any) -> None:
         """Stream to the Rerun dashboard as ``rse simulate`` does
         (:class:`agents.rounds.DashboardFeed`). The links delivered in a round and the link
@@ -208,6 +219,7 @@ class MonitorProcess(Role):
             got = self.decode(key, payload, self.wire.ctl)
             if got is not None and got[0].sender == PLANT_ID:
                 self.stop_round = got[1].stamp
+                self.wake_at(1)  # the last reports and the stats, as they come
         else:
             self.rejects.add(None, "key")
         self._close_rounds(final=False)
@@ -396,7 +408,7 @@ class MonitorProcess(Role):
             self.dashboard.flush()
         regular = regular_mask(exp)
         rejected: dict[str, dict[str, int]] = {}
-        processes: dict[str, Any] = {"monitor": {"maxrss_mb": maxrss_mb(), "uss_mb": uss_mb()}}
+        processes: dict[str, Any] = {"monitor": {"maxrss_mb": maxrss_mb(), "uss_mb": uss_mb(), "batches": self.batches}}
         Rejects.merge(rejected, self.rejects.as_array())
         perf: dict[str, Any] = {}
         for who, m in sorted(self.stats.items()):

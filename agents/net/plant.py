@@ -7,6 +7,7 @@ import asyncio
 import logging
 import time
 from collections import Counter
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -39,6 +40,7 @@ class PlantProcess(Role):
         self.monitor_ack = -1
         self.k = 0  # the round being run
         self.missed: Counter[int] = Counter()
+        self._counting: dict[int, list[tuple[int, int]]] | None = None  # the reports the round waits for
         out_ids = {aid: {exp.agent_ids[j] for j in exp.out_neighbours(i)} for i, aid in enumerate(exp.agent_ids)}
         self.out_ids = out_ids
 
@@ -80,6 +82,16 @@ class PlantProcess(Role):
                 self.monitor_ack = max(self.monitor_ack, got[1].stamp)
         else:
             self.rejects.add(None, "key")
+
+    def lazy_items(self) -> Callable[[Any], bool] | None:
+        # lockstep: a round's reports wake the plant together (wake_at: the ones still due)
+        return (lambda item: type(item[1]) is bytes) if self.cfg.mode == "lockstep" else None
+
+    def after_batch(self) -> bool:
+        rnd = self._counting
+        if rnd is not None:
+            self.wake_at(max(1, sum(1 for a in self.members if a not in rnd)))
+        return super().after_batch()
 
     def _wait_lists(self, prev: dict[int, list[tuple[int, int]]]) -> dict[int, np.ndarray]:
         """Per receiver, the (sender, stamp) pairs of the messages sent to it last round."""
@@ -145,9 +157,18 @@ class PlantProcess(Role):
                                                 meta={"member": member, "nomeas": rows is None}), droppable=not lockstep)
             if lockstep:
                 expected = set(self.members)
-                rnd = self.done[k]
-                finished = await self.wait_for(lambda rnd=rnd, expected=expected: all(a in rnd or a not in self.members for a in expected),
-                                               cfg.deadline)
+                rnd = self._counting = self.done[k]
+                self.wake_at(max(1, len(expected)))
+
+                def finished_(rnd: dict = rnd, expected: set = expected) -> bool:
+                    return all(a in rnd or a not in self.members for a in expected)
+
+                finished = await self.wait_for(finished_, cfg.deadline)
+                self._counting = None
+                self.wake_at(1)
+                if not finished:  # what waited for the rest of the round's reports comes in now
+                    await asyncio.sleep(0)
+                    finished = finished_()
                 if not finished:
                     late = sorted(a for a in expected if a not in rnd and a in self.members)
                     for a in late:

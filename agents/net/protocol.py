@@ -76,6 +76,8 @@ ACK_EVERY = 32
 #: opens a new session (transport.zenoh_bus.ZenohBus.reconnect), at most RECONNECTS times
 UNHEARD_S = 3.0
 RECONNECTS = 5
+#: lazy items wake a role that set no other bound once this many wait (see Role.lazy_items)
+LAZY = QUEUE_SIZE // 2
 MAX_AHEAD = 512  # lockstep: the plant waits when the monitor is this many rounds behind
 UNKNOWN = MIN_ID  # sender code of a message whose key names no sender
 REASONS = ("size", "decode", "type", "keys", "version", "sender", "shape", "nonfinite", "key", "range", "neighbour",
@@ -230,6 +232,16 @@ def _msg(kind: str, sender: int, stamp: int, arrays: dict, **kw: Any) -> bytes:
     return encode_fields(kind, sender, stamp, arrays, **kw)
 
 
+def receivers_of(m: Message, team: int) -> tuple[list[int], list[int]] | None:
+    """A done report's receivers and stamps as ints, or None when they do not pair up,
+    are more than ``team`` or are not whole numbers in the stamps' range."""
+    to, stamps = m.arrays["to"].tolist(), m.arrays["stamps"].tolist()
+    if (len(stamps) != len(to) or len(to) > team
+            or not all(v.is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
+        return None
+    return [int(t) for t in to], [int(st) for st in stamps]
+
+
 class Role:
     """What the three roles share: one queue, strict decoding, liveliness bookkeeping."""
 
@@ -245,6 +257,9 @@ class Role:
         self.changed = asyncio.Event()
         self.ids = set(exp.agent_ids)
         self._waiting: Callable[[], bool] | None = None  # the predicate wait_for waits on
+        self._wake_at: Callable[[int], None] | None = None  # see lazy_items
+        self._lazy_n = 1
+        self.batches = 0  # the batches handled: the wake-ups that brought messages
 
     def decode(self, key: str, payload: bytes, schema: Schema) -> tuple[ParsedKey, Message] | None:
         try:
@@ -299,7 +314,14 @@ class Role:
         from transport.bridge import deliver_to  # imports zenoh: only where a role runs
 
         q = self.queue
-        undo = deliver_to(asyncio.get_running_loop(), q, self.handle_batch)
+        loop = asyncio.get_running_loop()
+        undo = deliver_to(loop, q, self.handle_batch)
+        lazy = self.lazy_items()
+        if lazy is not None:
+            from transport.bridge import batch_lazily
+
+            self._wake_at = batch_lazily(loop, q, lazy)
+            self._wake_at(self._lazy_n)
         try:
             while True:
                 batch = [await q.get()]
@@ -309,7 +331,21 @@ class Role:
         finally:
             undo()
 
+    def lazy_items(self) -> Callable[[Any], bool] | None:
+        """The items (``(key, payload)``) that may wait for the next batch without waking
+        this role (:func:`transport.bridge.batch_lazily`; on a Zenoh thread), or None: every
+        item wakes it. A role that returns one steers it with :meth:`wake_at`."""
+        return None
+
+    def wake_at(self, n: int) -> None:
+        """Lazy items wake this role once ``n`` wait (1: each one does)."""
+        if n != self._lazy_n:
+            self._lazy_n = n
+            if self._wake_at is not None:
+                self._wake_at(n)
+
     def handle_batch(self, items: list[Any]) -> None:
+        self.batches += 1
         for item in items:
             self.handle(item)
         if self.after_batch():
@@ -357,7 +393,8 @@ class Role:
 
     def send_stats(self, sender: int, links: np.ndarray | None = None, **meta: Any) -> None:
         links = np.zeros((0, 6)) if links is None else links
-        meta = {"cmd": "stats", "maxrss_mb": maxrss_mb(), "bridge_dropped": int(self.bus.stats.dropped_full), **meta}
+        meta = {"cmd": "stats", "maxrss_mb": maxrss_mb(), "bridge_dropped": int(self.bus.stats.dropped_full),
+                "batches": self.batches, **meta}
         uss = uss_mb()
         if math.isfinite(uss):  # not on every system (the codec carries finite numbers only)
             meta["uss_mb"] = uss

@@ -143,6 +143,22 @@ def test_two_teams_at_once_equal_the_simulator_with_bad_bytes_injected(procs, tm
     assert {"decode", "type", "nonfinite", "shape", "size", "sender"} <= set(rej["2"]), rej["2"]
     assert json.loads((b / "summary.json").read_text())["rejected"] == {}
     assert json.loads((a / "manifest.json").read_text())["driver"] == "run"
+    _assert_lazy_wakeups(b, MITRA)
+
+
+def _assert_lazy_wakeups(out: Path, scenario: Path) -> None:
+    """Lockstep wake-ups (batches of messages handled, ``summary.json``: ``processes``): a
+    regular agent about once a round, at its measurement, with its in-neighbours' reports
+    in the same batch (3 to 4.5 times a round when each burst woke it); the plant about
+    once a round, at the last report due; the monitor once per 64 messages."""
+    exp, _ = load_experiment(scenario)
+    summary = json.loads((out / "summary.json").read_text())
+    rounds, procs = exp.n_rounds + 1, summary["processes"]
+    regular = [aid for i, aid in enumerate(exp.agent_ids) if i not in exp.byzantine]
+    per_round = {str(aid): procs[f"agent {aid}"]["batches"] / rounds for aid in regular}
+    assert max(per_round.values()) <= 1.5, per_round
+    assert procs["plant"]["batches"] <= 1.5 * rounds, procs["plant"]
+    assert procs["monitor"]["batches"] <= 0.5 * rounds, procs["monitor"]
 
 
 def test_run_through_a_router_equals_the_simulator(procs, tmp_path):

@@ -88,13 +88,16 @@ def test_a_role_handles_bursts_directly_and_queued_items_too():
             self.changed = asyncio.Event()
             self._waiting = None
             self.seen: list[bytes] = []
+            self._lazy_n = 1
+            self._wake_at = None
+            self.afters = 0
             self.batches = 0
 
         def handle_data(self, key: str, payload: bytes) -> None:
             self.seen.append(payload)
 
         def after_batch(self) -> bool:
-            self.batches += 1
+            self.afters += 1
             return True
 
     async def main() -> None:
@@ -106,11 +109,11 @@ def test_a_role_handles_bursts_directly_and_queued_items_too():
         cb(fake_sample(b"a"))
         cb(fake_sample(b"b"))
         await asyncio.wait_for(role.changed.wait(), 2)
-        assert role.seen == [b"a", b"b"] and role.batches == 1 and role.queue.empty()
+        assert role.seen == [b"a", b"b"] and role.afters == role.batches == 1 and role.queue.empty()
         role.changed.clear()
         role.queue.put_nowait(("k", b"c"))  # not from a bridge: the consuming task takes it
         await asyncio.wait_for(role.changed.wait(), 2)
-        assert role.seen == [b"a", b"b", b"c"] and role.batches == 2
+        assert role.seen == [b"a", b"b", b"c"] and role.afters == role.batches == 2
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
         cb(fake_sample(b"d"))  # after the consumer stopped: queued, not handled
