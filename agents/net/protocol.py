@@ -30,7 +30,8 @@ for). The meas message to agent ``i`` lists the in-neighbours whose round ``k - 
 messages were sent to ``i`` (from their done reports); the agent runs round ``k`` when
 all of them have physically arrived (or the deadline passed), so every message reaches
 ``AgentNode.receive`` before the round in which the channel model makes it visible, and
-the estimates equal ``rse simulate``'s. **Realtime**: the plant ticks at ``rate`` Hz on
+the estimates equal ``rse simulate``'s. A lockstep role wakes about once a round: what it
+does not need yet waits in the bridge (:meth:`Role.lazy_items`). **Realtime**: the plant ticks at ``rate`` Hz on
 the wall clock, agents run a round as soon as its measurement arrives, with whatever
 has arrived (late messages are placed by their stamps).
 
