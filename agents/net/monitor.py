@@ -100,7 +100,6 @@ class MonitorProcess(Role):
         # falls MAX_AHEAD rounds behind)
         if self.cfg.mode != "lockstep":
             return None
-        self.wake_at(self.BATCH)
         return lambda item: type(item[1]) is bytes and ("/ctl/done/" in item[0] or item[0].endswith("/plant/truth"))
 
     def _setup_dashboard(self, dash: Any) -> None:
@@ -328,6 +327,7 @@ class MonitorProcess(Role):
         bus.subscribe(keys.ctl_pattern("stop"), self.queue)
         bus.watch(keys.alive_pattern(), self.queue)
         bus.announce(keys.alive("monitor", 0))
+        self.wake_at(self.BATCH)  # lockstep (lazy_items)
         consumer = asyncio.ensure_future(self.consume())
         try:
             return await self._run()
