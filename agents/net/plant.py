@@ -25,6 +25,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rse.net")
 
+STOP_LINGER_S = 2.0  # after the stop messages, how long the plant waits for the agents to leave
+
 
 class PlantProcess(Role):
     name = "plant"
@@ -199,7 +201,11 @@ class PlantProcess(Role):
         for aid in ids:
             bus.publish(loc_keys[aid], _msg("ctl", PLANT_ID, K, {"wait": waits.get(aid, nowait)}, meta={"cmd": "stop"}))
         bus.publish(keys.ctl("stop", PLANT_ID), _msg("ctl", PLANT_ID, K, {}, meta={"cmd": "stop"}))
-        await asyncio.sleep(0.05)  # let the last messages leave before the session closes
+        # closing the session drops what is still queued toward a slow peer, and an agent that
+        # sees the plant's token go before its stop message waits out its deadline: stay until
+        # the agents left (each leaves once stopped), at most STOP_LINGER_S
+        await asyncio.sleep(0.05)
+        await self.wait_for(lambda: not any(r == "agent" for r, _ in self.alive), STOP_LINGER_S)
         return {"elapsed": elapsed, "rounds": K + 1}
 
 

@@ -44,6 +44,8 @@ async def run_team_in_memory(exp: Experiment, cfg: RunConfig, *, run_id: str = "
         mon = asyncio.ensure_future(run_monitor(exp, buses[0], keys, cfg, out_dir=out_dir))
         agents = [asyncio.ensure_future(run_agent_slice(part, buses[2 + i], keys, cfg, node_hook=node_hook))
                   for i, part in enumerate(agent_slices(exp))]
+        for task, bus in zip(agents, buses[2:]):  # an agent that ends leaves, as its process would
+            task.add_done_callback(lambda _, bus=bus: bus.close())
         plant = asyncio.ensure_future(run_plant(exp, buses[1], keys, cfg))
         await asyncio.gather(plant, *agents)
         return await mon
