@@ -161,7 +161,7 @@ class _Feeder:
         already, they are taken now (in a callback of the loop, not in this call)."""
         with self.lock:
             self.wake_at = n
-            go = len(self.pending) >= n and bool(self.pending) and not self.scheduled
+            go = len(self.pending) >= max(n, 1) and not self.scheduled
             if go:
                 self.scheduled = True
         if go:

@@ -18,7 +18,7 @@ from transport.codec import MONITOR_ID, PLANT_ID
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import MAX_AHEAD, Role, RunConfig, _msg
+from .protocol import MAX_AHEAD, Role, RunConfig, _msg, receivers_of
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -63,17 +63,14 @@ class PlantProcess(Role):
             if got is None:
                 return
             p, m = got
-            to, stamps = m.arrays["to"], m.arrays["stamps"]
             allowed = self.out_ids.get(p.sender)
-            tl, sl = to.tolist(), stamps.tolist()
-            if (allowed is None or len(tl) > len(allowed) or len(sl) != len(tl)
-                    or not all(t.is_integer() and int(t) in allowed for t in tl)
-                    or not all(s.is_integer() and 0 <= s < 2**53 for s in sl)):
+            got_to = None if allowed is None else receivers_of(m, len(allowed))
+            if got_to is None or not all(t in allowed for t in got_to[0]):
                 self.rejects.add(p.sender, "range")
                 return
             rnd = self.done.get(m.stamp)
             if rnd is not None:
-                rnd[p.sender] = [(int(t), int(s)) for t, s in zip(tl, sl)]
+                rnd[p.sender] = list(zip(*got_to))
         elif "/ctl/ready/" in key:
             got = self.decode(key, payload, self.wire.ctl)
             if got is not None and got[0].sender in self.ids:

@@ -31,9 +31,9 @@ messages were sent to ``i`` (from their done reports); the agent runs round ``k`
 all of them have physically arrived (or the deadline passed), so every message reaches
 ``AgentNode.receive`` before the round in which the channel model makes it visible, and
 the estimates equal ``rse simulate``'s. A lockstep role wakes about once a round: what it
-does not need yet waits in the bridge (:meth:`Role.lazy_items`). **Realtime**: the plant ticks at ``rate`` Hz on
-the wall clock, agents run a round as soon as its measurement arrives, with whatever
-has arrived (late messages are placed by their stamps).
+does not need yet waits in the bridge (:meth:`Role.lazy_items`). **Realtime**: the plant
+ticks at ``rate`` Hz on the wall clock, agents run a round as soon as its measurement
+arrives, with whatever has arrived (late messages are placed by their stamps).
 
 **Joining**: an agent subscribes, declares its token, waits until it sees the plant's and
 the monitor's tokens (and its neighbours', or the team is already running), then sends
@@ -312,15 +312,13 @@ class Role:
     async def consume(self) -> None:
         """Handle what the bus brings: each batch of a Zenoh bus straight from its bridges
         (:func:`~transport.bridge.deliver_to`), anything else through the queue."""
-        from transport.bridge import deliver_to  # imports zenoh: only where a role runs
+        from transport.bridge import batch_lazily, deliver_to  # imports zenoh: only where a role runs
 
         q = self.queue
         loop = asyncio.get_running_loop()
         undo = deliver_to(loop, q, self.handle_batch)
         lazy = self.lazy_items()
         if lazy is not None:
-            from transport.bridge import batch_lazily
-
             self._wake_at = batch_lazily(loop, q, lazy)
             self._wake_at(self._lazy_n)
         try:

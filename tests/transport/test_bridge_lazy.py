@@ -5,6 +5,9 @@ one batch, in their order of arrival."""
 from __future__ import annotations
 
 import asyncio
+from types import SimpleNamespace
+
+import pytest
 
 from tests.transport.test_bridge_direct import fake_sample
 from transport.bridge import batch_lazily, deliver_to, make_bridge
@@ -12,101 +15,84 @@ from transport.bridge import batch_lazily, deliver_to, make_bridge
 NEEDED = "rse/r/plant/loc/1"
 
 
-def _setup(maxsize: int = 64):
+@pytest.fixture
+def lazy(request):
+    """A loop, a bounded queue (``maxsize`` 64, or the indirect parameter), one bridge into
+    it, a direct consumer recording its batches, and ``wake_at`` of items lazy unless on
+    :data:`NEEDED`; the loop is closed afterwards."""
     loop = asyncio.new_event_loop()
-    queue: asyncio.Queue = asyncio.Queue(maxsize=maxsize)
-    cb = make_bridge(loop, queue)
+    queue: asyncio.Queue = asyncio.Queue(maxsize=getattr(request, "param", 64))
     batches: list[list[bytes]] = []
     deliver_to(loop, queue, lambda items: batches.append([p for _, p in items]))
-    wake_at = batch_lazily(loop, queue, lambda item: item[0] != NEEDED)
-    return loop, queue, cb, batches, wake_at
-
-
-def _turn(loop) -> None:
-    loop.run_until_complete(asyncio.sleep(0))
-
-
-def test_without_a_bound_every_item_still_wakes_the_loop():
-    loop, _, cb, batches, _ = _setup()
-    try:  # wake_at starts at 1: as without batch_lazily
-        cb(fake_sample(b"a"))
-        _turn(loop)
-        cb(fake_sample(b"b"))
-        _turn(loop)
-        assert batches == [[b"a"], [b"b"]]
-    finally:
-        loop.close()
-
-
-def test_lazy_items_wait_for_the_item_that_is_needed_and_keep_their_order():
-    loop, queue, cb, batches, wake_at = _setup()
-    try:
-        wake_at(1000)
-        for p in (b"r1", b"r2", b"r3"):
-            cb(fake_sample(p))
-            _turn(loop)
-        assert batches == [] and queue.empty()  # nothing woke the loop
-        cb(fake_sample(b"meas", NEEDED))
-        _turn(loop)
-        assert batches == [[b"r1", b"r2", b"r3", b"meas"]]
-        assert cb.stats.received == 4
-    finally:
-        loop.close()
-
-
-def test_lazy_items_wake_the_loop_once_as_many_as_asked_for_wait():
-    loop, _, cb, batches, wake_at = _setup()
-    try:
-        wake_at(3)
-        for p in (b"a", b"b"):
-            cb(fake_sample(p))
-            _turn(loop)
-        assert batches == []
-        cb(fake_sample(b"c"))
-        _turn(loop)
-        assert batches == [[b"a", b"b", b"c"]]
-    finally:
-        loop.close()
-
-
-def test_asking_for_fewer_than_already_wait_takes_them_at_once():
-    loop, _, cb, batches, wake_at = _setup()
-    try:
-        wake_at(1000)
-        for p in (b"a", b"b"):
-            cb(fake_sample(p))
-        _turn(loop)
-        assert batches == []
-        wake_at(1)  # e.g. an agent that now waits for a missing in-neighbour
-        assert batches == []  # not in this call: in a callback of the loop
-        _turn(loop)
-        assert batches == [[b"a", b"b"]]
-        cb(fake_sample(b"c"))  # and every item wakes it again
-        _turn(loop)
-        assert batches == [[b"a", b"b"], [b"c"]]
-    finally:
-        loop.close()
-
-
-def test_items_waiting_count_against_the_bound_of_the_queue():
-    loop, _, cb, batches, wake_at = _setup(maxsize=2)
-    try:
-        wake_at(1000)
-        for p in (b"a", b"b", b"c"):
-            cb(fake_sample(p))
-        assert cb.stats.dropped_full == 1
-        cb(fake_sample(b"meas", NEEDED))  # dropped too: the queue is full
-        wake_at(1)
-        _turn(loop)
-        assert batches == [[b"a", b"b"]] and cb.stats.dropped_full == 2
-    finally:
-        loop.close()
-
-
-def test_items_waiting_when_the_loop_closes_are_counted_as_dropped():
-    loop, _, cb, _, wake_at = _setup()
-    wake_at(1000)
-    cb(fake_sample(b"a"))
+    ns = SimpleNamespace(loop=loop, queue=queue, cb=make_bridge(loop, queue), batches=batches,
+                         wake_at=batch_lazily(loop, queue, lambda item: item[0] != NEEDED),
+                         turn=lambda: loop.run_until_complete(asyncio.sleep(0)))
+    yield ns
     loop.close()
-    cb(fake_sample(b"b"))
-    assert cb.stats.dropped_closed == 2 and cb.stats.errors == 0
+
+
+def test_without_a_bound_every_item_still_wakes_the_loop(lazy):
+    # wake_at starts at 1: as without batch_lazily
+    lazy.cb(fake_sample(b"a"))
+    lazy.turn()
+    lazy.cb(fake_sample(b"b"))
+    lazy.turn()
+    assert lazy.batches == [[b"a"], [b"b"]]
+
+
+def test_lazy_items_wait_for_the_item_that_is_needed_and_keep_their_order(lazy):
+    lazy.wake_at(1000)
+    for p in (b"r1", b"r2", b"r3"):
+        lazy.cb(fake_sample(p))
+        lazy.turn()
+    assert lazy.batches == [] and lazy.queue.empty()  # nothing woke the loop
+    lazy.cb(fake_sample(b"meas", NEEDED))
+    lazy.turn()
+    assert lazy.batches == [[b"r1", b"r2", b"r3", b"meas"]]
+    assert lazy.cb.stats.received == 4
+
+
+def test_lazy_items_wake_the_loop_once_as_many_as_asked_for_wait(lazy):
+    lazy.wake_at(3)
+    for p in (b"a", b"b"):
+        lazy.cb(fake_sample(p))
+        lazy.turn()
+    assert lazy.batches == []
+    lazy.cb(fake_sample(b"c"))
+    lazy.turn()
+    assert lazy.batches == [[b"a", b"b", b"c"]]
+
+
+def test_asking_for_fewer_than_already_wait_takes_them_at_once(lazy):
+    lazy.wake_at(1000)
+    for p in (b"a", b"b"):
+        lazy.cb(fake_sample(p))
+    lazy.turn()
+    assert lazy.batches == []
+    lazy.wake_at(1)  # e.g. an agent that now waits for a missing in-neighbour
+    assert lazy.batches == []  # not in this call: in a callback of the loop
+    lazy.turn()
+    assert lazy.batches == [[b"a", b"b"]]
+    lazy.cb(fake_sample(b"c"))  # and every item wakes it again
+    lazy.turn()
+    assert lazy.batches == [[b"a", b"b"], [b"c"]]
+
+
+@pytest.mark.parametrize("lazy", [2], indirect=True, ids=["maxsize=2"])
+def test_items_waiting_count_against_the_bound_of_the_queue(lazy):
+    lazy.wake_at(1000)
+    for p in (b"a", b"b", b"c"):
+        lazy.cb(fake_sample(p))
+    assert lazy.cb.stats.dropped_full == 1
+    lazy.cb(fake_sample(b"meas", NEEDED))  # dropped too: the queue is full
+    lazy.wake_at(1)
+    lazy.turn()
+    assert lazy.batches == [[b"a", b"b"]] and lazy.cb.stats.dropped_full == 2
+
+
+def test_items_waiting_when_the_loop_closes_are_counted_as_dropped(lazy):
+    lazy.wake_at(1000)
+    lazy.cb(fake_sample(b"a"))
+    lazy.loop.close()
+    lazy.cb(fake_sample(b"b"))
+    assert lazy.cb.stats.dropped_closed == 2 and lazy.cb.stats.errors == 0
