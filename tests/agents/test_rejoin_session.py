@@ -8,6 +8,7 @@ import types
 import numpy as np
 
 import agents.net.agent as agent_mod
+import agents.net.rejoin as rejoin_mod
 import agents.net.monitor as monitor_mod
 from agents.api import load_experiment
 from agents.net.agent import AgentProcess, run_agent_slice
@@ -53,8 +54,9 @@ async def _agent_among_tokens(rejoin: bool, seconds: float, hosted: int = 1) -> 
 
 def test_a_rejoining_agent_that_hears_no_plant_reconnects(monkeypatch):
     monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    monkeypatch.setattr(rejoin_mod, "UNHEARD_S", 0.3)
     n = asyncio.run(_agent_among_tokens(rejoin=True, seconds=2.5))
-    assert 2 <= n <= agent_mod.RECONNECTS  # every 0.3 s after asking to join, at most RECONNECTS times
+    assert 2 <= n <= rejoin_mod.RECONNECTS  # every 0.3 s after asking to join, at most RECONNECTS times
 
 
 def test_agents_that_share_a_process_share_its_reconnects(monkeypatch):
@@ -62,6 +64,7 @@ def test_agents_that_share_a_process_share_its_reconnects(monkeypatch):
     runs opens no second session, and each waits UNHEARD_S after the last one, so the
     process reconnects as often as a process of one agent (not three times as often)."""
     monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    monkeypatch.setattr(rejoin_mod, "UNHEARD_S", 0.3)
     n = asyncio.run(_agent_among_tokens(rejoin=True, seconds=1.2, hosted=3))
     assert 2 <= n <= 4  # at 0.3 s after asking to join, then every 0.3 s or so: not 3 per period
 
@@ -69,16 +72,17 @@ def test_agents_that_share_a_process_share_its_reconnects(monkeypatch):
 def test_an_agent_waits_after_its_process_reconnected():
     """Another agent of the process reconnected 1 s ago: this one, which asked to join 10 s
     ago, waits UNHEARD_S from that reconnect, not from its own request."""
-    now = agent_mod.time.monotonic()
+    now = rejoin_mod.time.monotonic()
     a = types.SimpleNamespace(rejoin=True, running_team=False, stop=None, _first_ready=now - 10.0, reconnects=0,
                               alive={("plant", 0)}, bus=types.SimpleNamespace(reconnected_at=now - 1.0))
     assert not AgentProcess._plant_unheard(a)
-    a.bus.reconnected_at = now - agent_mod.UNHEARD_S - 1.0
+    a.bus.reconnected_at = now - rejoin_mod.UNHEARD_S - 1.0
     assert AgentProcess._plant_unheard(a)
 
 
 def test_an_agent_of_an_assembling_team_waits(monkeypatch):
     monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    monkeypatch.setattr(rejoin_mod, "UNHEARD_S", 0.3)
     assert asyncio.run(_agent_among_tokens(rejoin=False, seconds=1.5)) == 0
 
 
@@ -116,14 +120,15 @@ def test_a_realtime_member_whose_measurements_stop_reconnects(monkeypatch):
     plant's token is there opens a new session (a link that dropped every measurement
     stays that way); while measurements come, it does not."""
     monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    monkeypatch.setattr(rejoin_mod, "UNHEARD_S", 0.3)
     assert asyncio.run(_member_whose_measurements_stop("realtime", 100, 0.0)) == 0  # 1 s of rounds: none
     n = asyncio.run(_member_whose_measurements_stop("realtime", 20, 2.0))
-    assert 2 <= n <= agent_mod.RECONNECTS  # 0.6 s (twice UNHEARD_S) after the last one, then every 0.6 s or so
+    assert 2 <= n <= rejoin_mod.RECONNECTS  # 0.6 s (twice UNHEARD_S) after the last one, then every 0.6 s or so
 
 
 def test_a_member_of_a_slow_realtime_team_waits_ten_rounds():
     """At 0.2 rounds/s a measurement comes every 5 s: no reconnect before 10 rounds (50 s)."""
-    now = agent_mod.time.monotonic()
+    now = rejoin_mod.time.monotonic()
     a = types.SimpleNamespace(member=True, cfg=RunConfig(mode="realtime", rate=0.2), stop=None, reconnects=0,
                               alive={("plant", 0)}, _last_loc=now - 20.0, bus=types.SimpleNamespace(reconnected_at=0.0))
     assert not AgentProcess._measurements_stopped(a)
@@ -137,6 +142,7 @@ def test_a_lockstep_member_waits_for_its_measurements(monkeypatch):
     """Lockstep: the plant sends the next measurement once the round is done by everyone,
     so a long wait is no broken link."""
     monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    monkeypatch.setattr(rejoin_mod, "UNHEARD_S", 0.3)
     assert asyncio.run(_member_whose_measurements_stop("lockstep", 20, 1.0)) == 0
 
 
