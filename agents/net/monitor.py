@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -408,7 +409,9 @@ class MonitorProcess(Role):
             self.dashboard.flush()
         regular = regular_mask(exp)
         rejected: dict[str, dict[str, int]] = {}
-        processes: dict[str, Any] = {"monitor": {"maxrss_mb": maxrss_mb(), "uss_mb": uss_mb(), "batches": self.batches}}
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        processes: dict[str, Any] = {"monitor": {"maxrss_mb": maxrss_mb(), "uss_mb": uss_mb(), "batches": self.batches,
+                                                 "cpu_s": round(usage.ru_utime + usage.ru_stime, 3)}}
         Rejects.merge(rejected, self.rejects.as_array())
         perf: dict[str, Any] = {}
         for who, m in sorted(self.stats.items()):

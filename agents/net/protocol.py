@@ -392,8 +392,9 @@ class Role:
 
     def send_stats(self, sender: int, links: np.ndarray | None = None, **meta: Any) -> None:
         links = np.zeros((0, 6)) if links is None else links
+        usage = resource.getrusage(resource.RUSAGE_SELF)  # every thread of this process
         meta = {"cmd": "stats", "maxrss_mb": maxrss_mb(), "bridge_dropped": int(self.bus.stats.dropped_full),
-                "batches": self.batches, **meta}
+                "batches": self.batches, "cpu_s": round(usage.ru_utime + usage.ru_stime, 3), **meta}
         uss = uss_mb()
         if math.isfinite(uss):  # not on every system (the codec carries finite numbers only)
             meta["uss_mb"] = uss

@@ -8,8 +8,8 @@ import types
 import numpy as np
 
 import agents.net.agent as agent_mod
-import agents.net.rejoin as rejoin_mod
 import agents.net.monitor as monitor_mod
+import agents.net.rejoin as rejoin_mod
 from agents.api import load_experiment
 from agents.net.agent import AgentProcess, run_agent_slice
 from agents.net.monitor import MonitorProcess

@@ -159,6 +159,8 @@ def _assert_lazy_wakeups(out: Path, scenario: Path) -> None:
     assert max(per_round.values()) <= 1.5, per_round
     assert procs["plant"]["batches"] <= 1.5 * rounds, procs["plant"]
     assert procs["monitor"]["batches"] <= 0.5 * rounds, procs["monitor"]
+    # each process's CPU seconds (user + system, every thread): a process ran its rounds
+    assert all(p["cpu_s"] > 0.05 for p in procs.values()), {k: p.get("cpu_s") for k, p in procs.items()}
 
 
 def test_run_through_a_router_equals_the_simulator(procs, tmp_path):
