@@ -5,6 +5,9 @@ messages; lockstep results equal ``rse simulate``'s."""
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 
 import pytest
 
@@ -27,6 +30,16 @@ def test_ids_groups_and_labels():
     assert agent_groups([1, 2, 3], 1) == [(1,), (2,), (3,)]
     assert group_label((1, 2, 3)) == "agents 1-3" and group_label((2, 5)) == "agents 2,5"
     assert group_label((7,)) == "agent 7"
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/comm"), reason="needs Linux's /proc/self/comm")
+def test_a_role_process_is_named_after_its_role():
+    """`ps` and `top` show the role: the main thread's name, at most 15 bytes."""
+    code = ("from agents.net.child import _name_process, group_label; "
+            "_name_process('rse ' + group_label([1, 2, 3, 4, 5, 6, 7, 8, 9, 10])); "
+            "print(open('/proc/self/comm').read().strip())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == ("rse " + group_label(list(range(1, 11))))[:15], out
 
 
 def test_links_follow_the_graph_and_the_packing(tmp_path):
