@@ -119,15 +119,18 @@ def sigterm_interrupts() -> None:
 def wait_while_serving(url: str) -> None:
     """After a run with --serve-web: keep the viewer up until Ctrl-C / SIGTERM."""
     import signal
-    import threading
+    import time
 
     from ..console import out as console
 
-    done = threading.Event()
+    # the handler only notes the signal (Event.set() in a handler can deadlock with the
+    # main thread's Event.wait(): agents.net.router.serve)
+    signalled: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: done.set())
+        signal.signal(sig, lambda signum, _frame: signalled.append(signum))
     console.print(f"the run is finished; still serving the recording at {url} (Ctrl-C to stop)")
-    done.wait()
+    while not signalled:
+        time.sleep(0.1)
 
 
 def secure_files(directory: Path, identity: str):

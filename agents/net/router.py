@@ -23,6 +23,7 @@ import logging
 import re
 import signal
 import threading
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -170,11 +171,15 @@ def serve(config: Any, endpoints: Sequence[str] = (), *, say: Callable[[str], No
     from transport.zenoh_session import close_session, open_session
 
     handlers: dict[int, Any] = {}
+    # a signal handler only notes the signal: Event.set() there could wait forever for the
+    # lock the interrupted main thread holds inside Event.wait() (seen: 1 SIGTERM in 30 to
+    # 80 on a loaded machine left `rse router` hanging)
+    signalled: list[int] = []
     if stop is None:
         stop = threading.Event()
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
-                handlers[sig] = signal.signal(sig, lambda *_: stop.set())
+                handlers[sig] = signal.signal(sig, lambda signum, _frame: signalled.append(signum))
     session = None
     try:
         try:
@@ -186,10 +191,10 @@ def serve(config: Any, endpoints: Sequence[str] = (), *, say: Callable[[str], No
             on_open(session)
         for ep in endpoints:
             say(f"rse router: listening on {ep}")
-        if not stop.is_set():
+        if not (stop.is_set() or signalled):
             say(f"rse router: open (zid {session.zid()}); Ctrl-C to stop")
-        while not stop.wait(0.2):
-            pass
+        while not (stop.is_set() or signalled):
+            time.sleep(0.1)  # a signal's handler runs here; is_set() takes no lock
     finally:
         close_session(session)
         for sig, h in handlers.items():
