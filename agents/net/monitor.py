@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -20,7 +19,7 @@ from transport.codec import MONITOR_ID, PLANT_ID, Message
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import ACK_EVERY, MONITOR_LAG, RECONNECTS, UNHEARD_S, Rejects, Role, RunConfig, _msg, diagnostics_from_meta, maxrss_mb, uss_mb, who_name
+from .protocol import ACK_EVERY, MONITOR_LAG, RECONNECTS, UNHEARD_S, Rejects, Role, RunConfig, _msg, cpu_s, diagnostics_from_meta, maxrss_mb, uss_mb, who_name
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -409,9 +408,8 @@ class MonitorProcess(Role):
             self.dashboard.flush()
         regular = regular_mask(exp)
         rejected: dict[str, dict[str, int]] = {}
-        usage = resource.getrusage(resource.RUSAGE_SELF)
         processes: dict[str, Any] = {"monitor": {"maxrss_mb": maxrss_mb(), "uss_mb": uss_mb(), "batches": self.batches,
-                                                 "cpu_s": round(usage.ru_utime + usage.ru_stime, 3)}}
+                                                 "cpu_s": cpu_s()}}
         Rejects.merge(rejected, self.rejects.as_array())
         perf: dict[str, Any] = {}
         for who, m in sorted(self.stats.items()):

@@ -139,6 +139,12 @@ def maxrss_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def cpu_s() -> float:
+    """CPU seconds (user + system) of every thread of this process so far."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return round(usage.ru_utime + usage.ru_stime, 3)
+
+
 def uss_mb() -> float:
     """Unique set size of this process now (MB): its private pages (``Private_Clean`` +
     ``Private_Dirty`` of ``/proc/self/smaps_rollup``), what it costs beyond the shared
@@ -392,9 +398,8 @@ class Role:
 
     def send_stats(self, sender: int, links: np.ndarray | None = None, **meta: Any) -> None:
         links = np.zeros((0, 6)) if links is None else links
-        usage = resource.getrusage(resource.RUSAGE_SELF)  # every thread of this process
         meta = {"cmd": "stats", "maxrss_mb": maxrss_mb(), "bridge_dropped": int(self.bus.stats.dropped_full),
-                "batches": self.batches, "cpu_s": round(usage.ru_utime + usage.ru_stime, 3), **meta}
+                "batches": self.batches, "cpu_s": cpu_s(), **meta}
         uss = uss_mb()
         if math.isfinite(uss):  # not on every system (the codec carries finite numbers only)
             meta["uss_mb"] = uss

@@ -19,7 +19,8 @@ NEEDED = "rse/r/plant/loc/1"
 def lazy(request):
     """A loop, a bounded queue (``maxsize`` 64, or the indirect parameter), one bridge into
     it, a direct consumer recording its batches, and ``wake_at`` of items lazy unless on
-    :data:`NEEDED`; the loop is closed afterwards."""
+    :data:`NEEDED`; ``arrive(*payloads, key=...)`` hands each to the bridge and lets the
+    loop run once after it; the loop is closed afterwards."""
     loop = asyncio.new_event_loop()
     queue: asyncio.Queue = asyncio.Queue(maxsize=getattr(request, "param", 64))
     batches: list[list[bytes]] = []
@@ -27,39 +28,37 @@ def lazy(request):
     ns = SimpleNamespace(loop=loop, queue=queue, cb=make_bridge(loop, queue), batches=batches,
                          wake_at=batch_lazily(loop, queue, lambda item: item[0] != NEEDED),
                          turn=lambda: loop.run_until_complete(asyncio.sleep(0)))
+
+    def arrive(*payloads: bytes, key: str = "rse/r/agent/1/est") -> None:
+        for p in payloads:
+            ns.cb(fake_sample(p, key))
+            ns.turn()
+
+    ns.arrive = arrive
     yield ns
     loop.close()
 
 
 def test_without_a_bound_every_item_still_wakes_the_loop(lazy):
     # wake_at starts at 1: as without batch_lazily
-    lazy.cb(fake_sample(b"a"))
-    lazy.turn()
-    lazy.cb(fake_sample(b"b"))
-    lazy.turn()
+    lazy.arrive(b"a", b"b")
     assert lazy.batches == [[b"a"], [b"b"]]
 
 
 def test_lazy_items_wait_for_the_item_that_is_needed_and_keep_their_order(lazy):
     lazy.wake_at(1000)
-    for p in (b"r1", b"r2", b"r3"):
-        lazy.cb(fake_sample(p))
-        lazy.turn()
+    lazy.arrive(b"r1", b"r2", b"r3")
     assert lazy.batches == [] and lazy.queue.empty()  # nothing woke the loop
-    lazy.cb(fake_sample(b"meas", NEEDED))
-    lazy.turn()
+    lazy.arrive(b"meas", key=NEEDED)
     assert lazy.batches == [[b"r1", b"r2", b"r3", b"meas"]]
     assert lazy.cb.stats.received == 4
 
 
 def test_lazy_items_wake_the_loop_once_as_many_as_asked_for_wait(lazy):
     lazy.wake_at(3)
-    for p in (b"a", b"b"):
-        lazy.cb(fake_sample(p))
-        lazy.turn()
+    lazy.arrive(b"a", b"b")
     assert lazy.batches == []
-    lazy.cb(fake_sample(b"c"))
-    lazy.turn()
+    lazy.arrive(b"c")
     assert lazy.batches == [[b"a", b"b", b"c"]]
 
 
@@ -73,8 +72,7 @@ def test_asking_for_fewer_than_already_wait_takes_them_at_once(lazy):
     assert lazy.batches == []  # not in this call: in a callback of the loop
     lazy.turn()
     assert lazy.batches == [[b"a", b"b"]]
-    lazy.cb(fake_sample(b"c"))  # and every item wakes it again
-    lazy.turn()
+    lazy.arrive(b"c")  # and every item wakes it again
     assert lazy.batches == [[b"a", b"b"], [b"c"]]
 
 
