@@ -459,12 +459,18 @@ def decode(
     if arr.keys() != fields.keys():
         raise _fail("keys", f"{kind!r} arrays {sorted(map(repr, arr))} != expected {sorted(fields)}"[:300])
     arrays: dict[str, np.ndarray] = {}
+    raws: list[bytes] = []
     for name, spec in fields.items():
-        arrays[name] = _decode_array(name, arr[name], spec)
+        arrays[name] = _decode_array(name, arr[name], spec, raws)
+    # finite values last, after every shape: all arrays' bytes in one check (a bad one named after)
+    if raws and not _all_finite(np.frombuffer(raws[0] if len(raws) == 1 else b"".join(raws), dtype=_F8)):
+        bad = next(n for n, a in arrays.items() if not _all_finite(a))
+        raise _fail("nonfinite", f"array {bad!r} has non-finite values")
     return Message._trusted(kind, sender, stamp, arrays, receiver, dict(meta) if meta else {})
 
 
-def _decode_array(name: str, entry: object, spec: ShapeSpec) -> np.ndarray:
+def _decode_array(name: str, entry: object, spec: ShapeSpec, raws: list[bytes]) -> np.ndarray:
+    # a read-only view of its bytes, shape checked; the bytes go to ``raws`` (finiteness: decode)
     if type(entry) is not list or len(entry) != 2:
         raise _fail("type", f"array {name!r} must be [shape, bytes]")
     shape_list, raw = entry
@@ -488,6 +494,6 @@ def _decode_array(name: str, entry: object, spec: ShapeSpec) -> np.ndarray:
     if not _LITTLE:
         a = a.astype(np.float64)
         a.setflags(write=False)
-    if not _all_finite(a):
-        raise _fail("nonfinite", f"array {name!r} has non-finite values")
+    if count:
+        raws.append(raw)
     return a

@@ -65,7 +65,7 @@ class PlantProcess(Role):
             p, m = got
             allowed = self.out_ids.get(p.sender)
             got_to = None if allowed is None else receivers_of(m, len(allowed))
-            if got_to is None or not all(t in allowed for t in got_to[0]):
+            if got_to is None or not allowed.issuperset(got_to[0]):
                 self.rejects.add(p.sender, "range")
                 return
             rnd = self.done.get(m.stamp)

@@ -243,10 +243,13 @@ def receivers_of(m: Message, team: int) -> tuple[list[int], list[int]] | None:
     """A done report's receivers and stamps as ints, or None when they do not pair up,
     are more than ``team`` or are not whole numbers in the stamps' range."""
     to, stamps = m.arrays["to"].tolist(), m.arrays["stamps"].tolist()
-    if (len(stamps) != len(to) or len(to) > team
-            or not all(v.is_integer() and 0 <= v < 2**53 for v in (*to, *stamps))):
+    if len(stamps) != len(to) or len(to) > team:
         return None
-    return [int(t) for t in to], [int(st) for st in stamps]
+    if to:  # finite (the codec checked): whole numbers in [0, 2**53), in C loops (a report a round per peer)
+        values = to + stamps
+        if min(values) < 0 or max(values) >= 2**53 or not all(map(float.is_integer, values)):
+            return None
+    return list(map(int, to)), list(map(int, stamps))
 
 
 class Role:

@@ -314,6 +314,29 @@ def test_non_finite_values_are_rejected(bad):
     assert reason_of(packed(wire)) == "nonfinite"
 
 
+def test_each_array_of_a_message_is_checked_for_finite_values_after_every_shape():
+    """The finite values of all arrays are checked in one pass after the shapes: a bad value
+    in any array is rejected and named; a bad shape is reported before a bad value."""
+    truth = Message(kind="truth", sender=PLANT_ID, stamp=2, arrays={"x": np.zeros(4), "P": np.zeros((4, 4))})
+    for name, count in (("x", 4), ("P", 16)):
+        for at in (0, count - 1):
+            wire = to_wire(truth)
+            values = [0.0] * count
+            values[at] = math.nan
+            wire["arr"][name] = [wire["arr"][name][0], struct.pack(f"<{count}d", *values)]
+            with pytest.raises(MessageError, match=f"array '{name}' has non-finite") as info:
+                decode(packed(wire), schema=SCHEMA)
+            assert info.value.reason == "nonfinite"
+    wire = to_wire(truth)
+    wire["arr"]["x"] = [[4], struct.pack("<4d", math.inf, 0.0, 0.0, 0.0)]
+    wire["arr"]["P"] = [[4, 3], b"\x00" * 96]
+    assert reason_of(packed(wire)) == "shape"
+    wire["arr"]["P"] = [[4, 4], b"\x00" * 128]
+    assert reason_of(packed(wire)) == "nonfinite"
+    wire["arr"]["x"] = [[4], b"\x00" * 32]
+    assert decode(packed(wire), schema=SCHEMA) == truth
+
+
 def test_sender_and_receiver_must_match_the_key():
     data = encode(est(sender=3))
     assert reason_of(data, expected_sender=4) == "sender"
