@@ -8,6 +8,7 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -26,6 +27,18 @@ if TYPE_CHECKING:
 log = logging.getLogger("rse.net")
 
 STOP_LINGER_S = 2.0  # after the stop messages, how long the plant waits for the agents to leave
+_EMPTY, _NOWAIT = np.zeros(0), np.zeros((0, 2))
+
+
+@dataclass
+class _NextRound:
+    """Lockstep: round ``k``, prepared while round ``k - 1`` runs (measurement ``y``, the
+    truth message not yet sent) and the agents it has not gone to yet."""
+
+    k: int
+    y: np.ndarray
+    truth: bytes | None
+    pending: set[int]
 
 
 class PlantProcess(Role):
@@ -43,8 +56,11 @@ class PlantProcess(Role):
         self.k = 0  # the round being run
         self.missed: Counter[int] = Counter()
         self._counting: dict[int, list[tuple[int, int]]] | None = None  # the reports the round waits for
+        self._expected: set[int] = set()  # the members the round waits for (those it started with)
         out_ids = {aid: {exp.agent_ids[j] for j in exp.out_neighbours(i)} for i, aid in enumerate(exp.agent_ids)}
         self.out_ids = out_ids
+        self.in_ids = {r: sorted(s for s, outs in out_ids.items() if r in outs) for r in exp.agent_ids}
+        self._next: _NextRound | None = None  # lockstep: round k + 1, released agent by agent
 
     def on_alive(self, role: str, i: int, alive: bool) -> None:
         if role == "monitor":
@@ -89,8 +105,36 @@ class PlantProcess(Role):
     def after_batch(self) -> bool:
         rnd = self._counting
         if rnd is not None:
-            self.wake_at(max(1, sum(1 for a in self.members if a not in rnd)))
+            owed = {a for a in self._expected if a not in rnd and a in self.members}  # the reports still due
+            due = len(owed)
+            nxt = self._next
+            if nxt is not None and nxt.pending:
+                # round k + 1 goes to each agent once its in-neighbours reported round k. The
+                # plant wakes once all but one report came (the last is often the one the
+                # omniscient adversary sends after the honest ones), then at the last
+                self._release(nxt, rnd, owed)
+                if nxt.pending and due > 1:
+                    due -= 1
+            self.wake_at(max(1, due))
         return super().after_batch()
+
+    def _release(self, nxt: _NextRound, rnd: dict[int, list[tuple[int, int]]], owed: set[int] | None) -> int:
+        """Publish round ``nxt.k``'s measurement to each pending agent none of whose
+        in-neighbours still owes its round ``nxt.k - 1`` report (``owed``; None: to every
+        pending agent, with what came). Returns how many reports the next release needs at least."""
+        fewest = len(self.exp.agent_ids) + 1
+        for aid in list(nxt.pending):
+            missing = 0 if owed is None else sum(1 for j in self.in_ids[aid] if j in owed)
+            if missing:
+                fewest = min(fewest, missing)
+                continue
+            if nxt.truth is not None:
+                self.bus.publish(self.keys.plant_truth(), nxt.truth)
+                nxt.truth = None
+            nxt.pending.discard(aid)
+            rows = sorted((j, st) for j in self.in_ids[aid] if j in rnd for r, st in rnd[j] if r == aid)
+            self._publish_meas(nxt.k, aid, nxt.y, np.array(rows, dtype=float).reshape(-1, 2))
+        return fewest
 
     def _wait_lists(self, prev: dict[int, list[tuple[int, int]]]) -> dict[int, np.ndarray]:
         """Per receiver, the (sender, stamp) pairs of the messages sent to it last round."""
@@ -122,42 +166,59 @@ class PlantProcess(Role):
         finally:
             consumer.cancel()
 
+    def _admit(self, k: int) -> None:
+        joined = (self.ready & {a for (r, a) in self.alive if r == "agent"}) - self.members
+        if joined:
+            self.members |= joined
+            log.info("plant: agent(s) %s joined at round %d", ", ".join(map(str, sorted(joined))), k)
+
+    def _publish_meas(self, k: int, aid: int, y: np.ndarray, wait: np.ndarray) -> None:
+        # realtime: a measurement an agent cannot take now is dropped for it alone
+        # (an unreachable agent must not hold up the others' measurements)
+        rows = self._reads.rows(self._index[aid], k)
+        member = aid in self.members
+        self.bus.publish(self._loc_keys[aid], _msg("meas", PLANT_ID, k, {"y": _EMPTY if rows is None else y[rows],
+                                                                          "wait": wait if member else _NOWAIT},
+                                                   meta={"member": member, "nomeas": rows is None}),
+                         droppable=self.cfg.mode != "lockstep")
+
     async def _rounds(self) -> dict[str, Any]:
         exp, keys, bus, cfg, plant = self.exp, self.keys, self.bus, self.cfg, self.plant
         K = exp.n_rounds
         ids = exp.agent_ids
-        reads = Reads(exp)
+        self._reads, self._index = Reads(exp), {aid: i for i, aid in enumerate(ids)}
         lockstep = cfg.mode == "lockstep"
         period = 1.0 / cfg.rate if cfg.rate else None
-        loc_keys = {aid: keys.plant_loc(aid) for aid in ids}
+        self._loc_keys = loc_keys = {aid: keys.plant_loc(aid) for aid in ids}
         truth_key = keys.plant_truth()
         prev: dict[int, list[tuple[int, int]]] = {}
-        empty = np.zeros(0)
-        nowait = np.zeros((0, 2))
         t0 = time.monotonic()
         round0_at = time.time()  # wall clock: start-up figures (command to round 0)
         for k in range(K + 1):
             self.k = k
-            joined = (self.ready & {a for (r, a) in self.alive if r == "agent"}) - self.members
-            if joined:
-                self.members |= joined
-                log.info("plant: agent(s) %s joined at round %d", ", ".join(map(str, sorted(joined))), k)
-            self.done[k] = {}
-            y = plant.measure(k)
-            bus.publish(truth_key, _msg("truth", PLANT_ID, k, {"x": plant.x}))
-            waits = self._wait_lists(prev) if lockstep else {}
-            # realtime: a measurement an agent cannot take now is dropped for it alone
-            # (an unreachable agent must not hold up the others' measurements)
-            for i, aid in enumerate(ids):
-                rows = reads.rows(i, k)
-                meas = empty if rows is None else y[rows]
-                member = aid in self.members
-                bus.publish(loc_keys[aid], _msg("meas", PLANT_ID, k, {"y": meas, "wait": waits.get(aid, nowait) if member else nowait},
-                                                meta={"member": member, "nomeas": rows is None}), droppable=not lockstep)
+            nxt, self._next = self._next, None
+            if nxt is None:  # the whole round here (realtime, paced lockstep, round 0)
+                self._admit(k)
+                self.done[k] = {}
+                y = plant.measure(k)
+                bus.publish(truth_key, _msg("truth", PLANT_ID, k, {"x": plant.x}))
+                waits = self._wait_lists(prev) if lockstep else {}
+                for aid in ids:
+                    self._publish_meas(k, aid, y, waits.get(aid, _NOWAIT))
+            else:  # lockstep: the agents round k did not reach while round k - 1 ran
+                self._release(nxt, prev, None)
             if lockstep:
-                expected = set(self.members)
+                expected = self._expected = set(self.members)
                 rnd = self._counting = self.done[k]
-                self.wake_at(max(1, len(expected)))
+                if k < K and period is None:
+                    # round k + 1 goes out agent by agent while round k runs: to an agent once
+                    # its in-neighbours reported round k (its wait list is complete then; the
+                    # plant's trajectory does not depend on the agents)
+                    plant.advance(k)
+                    self._admit(k + 1)
+                    self.done[k + 1] = {}
+                    self._next = _NextRound(k + 1, plant.measure(k + 1), _msg("truth", PLANT_ID, k + 1, {"x": plant.x}), set(ids))
+                self.after_batch()  # releases what can go now, and counts what wakes the plant
 
                 def finished_(rnd: dict = rnd, expected: set = expected) -> bool:
                     return all(a in rnd or a not in self.members for a in expected)
@@ -188,7 +249,7 @@ class PlantProcess(Role):
                     await asyncio.sleep(delay)
             prev = self.done[k]
             self.done.pop(k - 1, None)
-            if k < K:
+            if k < K and self._next is None:
                 plant.advance(k)
         elapsed = time.monotonic() - t0
         # the end: final wait lists (messages stamped K), then stop
@@ -196,7 +257,7 @@ class PlantProcess(Role):
         self.send_stats(PLANT_ID, elapsed=elapsed, rounds=K + 1, missed=int(sum(self.missed.values())),
                         round0_at=round0_at)
         for aid in ids:
-            bus.publish(loc_keys[aid], _msg("ctl", PLANT_ID, K, {"wait": waits.get(aid, nowait)}, meta={"cmd": "stop"}))
+            bus.publish(loc_keys[aid], _msg("ctl", PLANT_ID, K, {"wait": waits.get(aid, _NOWAIT)}, meta={"cmd": "stop"}))
         bus.publish(keys.ctl("stop", PLANT_ID), _msg("ctl", PLANT_ID, K, {}, meta={"cmd": "stop"}))
         # closing the session drops what is still queued toward a slow peer, and an agent that
         # sees the plant's token go before its stop message waits out its deadline: stay until

@@ -24,9 +24,12 @@ The round protocol (keys from :class:`transport.keys.Keys`)::
     every   -> rse/{run}/ctl/stats/{who}    link and rejection counters, RSS    (monitor)
     every   -> rse/{run}/alive/{role}/{i}   liveliness token
 
-**Lockstep**: the plant publishes round ``k`` once every member agent reported round
-``k - 1`` done (or the deadline passed; a member whose token went away is not waited
-for). The meas message to agent ``i`` lists the in-neighbours whose round ``k - 1``
+**Lockstep**: the plant publishes round ``k``'s measurement to agent ``i`` once every
+member in-neighbour of ``i`` reported round ``k - 1`` done, and starts round ``k + 1`` once
+every member did (or the deadline passed; a member whose token went away is not waited
+for): an agent whose in-neighbours are done runs ahead while a straggler elsewhere (the
+omniscient adversary, whose round comes after the honest ones) finishes. Unpaced only; with
+``rate`` the whole round goes out at once. The meas message to agent ``i`` lists the in-neighbours whose round ``k - 1``
 messages were sent to ``i`` (from their done reports); the agent runs round ``k`` when
 all of them have physically arrived (or the deadline passed), so every message reaches
 ``AgentNode.receive`` before the round in which the channel model makes it visible, and
