@@ -118,15 +118,12 @@ class PlantProcess(Role):
             self.wake_at(max(1, due))
         return super().after_batch()
 
-    def _release(self, nxt: _NextRound, rnd: dict[int, list[tuple[int, int]]], owed: set[int] | None) -> int:
+    def _release(self, nxt: _NextRound, rnd: dict[int, list[tuple[int, int]]], owed: set[int] | None) -> None:
         """Publish round ``nxt.k``'s measurement to each pending agent none of whose
         in-neighbours still owes its round ``nxt.k - 1`` report (``owed``; None: to every
-        pending agent, with what came). Returns how many reports the next release needs at least."""
-        fewest = len(self.exp.agent_ids) + 1
+        pending agent, with what came), with its wait list from ``rnd``, those reports."""
         for aid in list(nxt.pending):
-            missing = 0 if owed is None else sum(1 for j in self.in_ids[aid] if j in owed)
-            if missing:
-                fewest = min(fewest, missing)
+            if owed is not None and any(j in owed for j in self.in_ids[aid]):
                 continue
             if nxt.truth is not None:
                 self.bus.publish(self.keys.plant_truth(), nxt.truth)
@@ -134,7 +131,6 @@ class PlantProcess(Role):
             nxt.pending.discard(aid)
             rows = sorted((j, st) for j in self.in_ids[aid] if j in rnd for r, st in rnd[j] if r == aid)
             self._publish_meas(nxt.k, aid, nxt.y, np.array(rows, dtype=float).reshape(-1, 2))
-        return fewest
 
     def _wait_lists(self, prev: dict[int, list[tuple[int, int]]]) -> dict[int, np.ndarray]:
         """Per receiver, the (sender, stamp) pairs of the messages sent to it last round."""

@@ -153,14 +153,15 @@ def _assert_lazy_wakeups(out: Path, scenario: Path) -> None:
     twice a round (once all but one of the round's reports came, to send round k + 1 to the
     agents whose in-neighbours have reported, then at the last), and once per report of round
     k + 1 that comes before the last of round k (2.5 to 2.8 a round measured on mitra_cells;
-    once a report when each woke it: 16); the monitor once per 64 messages."""
+    2.8 in this test, with two teams at once; once a report when each woke it: 16); the monitor
+    once per 64 messages."""
     exp, _ = load_experiment(scenario)
     summary = json.loads((out / "summary.json").read_text())
     rounds, procs = exp.n_rounds + 1, summary["processes"]
     regular = [aid for i, aid in enumerate(exp.agent_ids) if i not in exp.byzantine]
     per_round = {str(aid): procs[f"agent {aid}"]["batches"] / rounds for aid in regular}
     assert max(per_round.values()) <= 1.5, per_round
-    assert procs["plant"]["batches"] <= 4 * rounds, procs["plant"]
+    assert procs["plant"]["batches"] <= 5 * rounds, procs["plant"]
     assert procs["monitor"]["batches"] <= 0.5 * rounds, procs["monitor"]
     # each process's CPU seconds (user + system, every thread): a process ran its rounds
     assert all(p["cpu_s"] > 0.05 for p in procs.values()), {k: p.get("cpu_s") for k, p in procs.items()}
