@@ -56,8 +56,16 @@ def _invoke(*args: str):
     from click.testing import CliRunner
 
     from agents.cli import cli
+    from agents.console import out
 
-    res = CliRunner(env={"COLUMNS": "200"}).invoke(cli, list(args))  # rich wraps tables at the width
+    # rich wraps tables at the console's width, which an earlier command in this process may
+    # have fixed (from COLUMNS when the console was made): 200 columns here, as for a process
+    saved = out._width
+    out.width = 200
+    try:
+        res = CliRunner().invoke(cli, list(args))
+    finally:
+        out._width = saved
     assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
     return res.exit_code, res.output
 
