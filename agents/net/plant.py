@@ -61,6 +61,9 @@ class PlantProcess(Role):
         self.out_ids = out_ids
         self.in_ids = {r: sorted(s for s, outs in out_ids.items() if r in outs) for r in exp.agent_ids}
         self._next: _NextRound | None = None  # lockstep: round k + 1, released agent by agent
+        self._reads, self._index = Reads(exp), {aid: i for i, aid in enumerate(exp.agent_ids)}
+        self._loc_keys = {aid: keys.plant_loc(aid) for aid in exp.agent_ids}
+        self._truth_key = keys.plant_truth()
 
     def on_alive(self, role: str, i: int, alive: bool) -> None:
         if role == "monitor":
@@ -126,20 +129,20 @@ class PlantProcess(Role):
             if owed is not None and any(j in owed for j in self.in_ids[aid]):
                 continue
             if nxt.truth is not None:
-                self.bus.publish(self.keys.plant_truth(), nxt.truth)
+                self.bus.publish(self._truth_key, nxt.truth)
                 nxt.truth = None
             nxt.pending.discard(aid)
-            rows = sorted((j, st) for j in self.in_ids[aid] if j in rnd for r, st in rnd[j] if r == aid)
-            self._publish_meas(nxt.k, aid, nxt.y, np.array(rows, dtype=float).reshape(-1, 2))
+            self._publish_meas(nxt.k, aid, nxt.y, self._wait_list(aid, rnd))
+
+    def _wait_list(self, aid: int, prev: dict[int, list[tuple[int, int]]]) -> np.ndarray:
+        """The (sender, stamp) pairs of the messages sent to ``aid`` in the round of ``prev``'s
+        reports (a report names only its sender's out-neighbours: only in-neighbours count)."""
+        rows = sorted((j, st) for j in self.in_ids[aid] if j in prev for r, st in prev[j] if r == aid)
+        return np.array(rows, dtype=float).reshape(-1, 2)
 
     def _wait_lists(self, prev: dict[int, list[tuple[int, int]]]) -> dict[int, np.ndarray]:
-        """Per receiver, the (sender, stamp) pairs of the messages sent to it last round."""
-        lists: dict[int, list[tuple[int, int]]] = {aid: [] for aid in self.exp.agent_ids}
-        for sender, to in prev.items():
-            for r, stamp in to:
-                if r in lists:
-                    lists[r].append((sender, stamp))
-        return {r: np.array(sorted(v), dtype=float).reshape(-1, 2) for r, v in lists.items()}
+        """Per receiver, :meth:`_wait_list`."""
+        return {aid: self._wait_list(aid, prev) for aid in self.exp.agent_ids}
 
     async def run(self) -> dict[str, Any]:
         exp, keys, bus, cfg = self.exp, self.keys, self.bus, self.cfg
@@ -182,11 +185,9 @@ class PlantProcess(Role):
         exp, keys, bus, cfg, plant = self.exp, self.keys, self.bus, self.cfg, self.plant
         K = exp.n_rounds
         ids = exp.agent_ids
-        self._reads, self._index = Reads(exp), {aid: i for i, aid in enumerate(ids)}
         lockstep = cfg.mode == "lockstep"
         period = 1.0 / cfg.rate if cfg.rate else None
-        self._loc_keys = loc_keys = {aid: keys.plant_loc(aid) for aid in ids}
-        truth_key = keys.plant_truth()
+        loc_keys, truth_key = self._loc_keys, self._truth_key
         prev: dict[int, list[tuple[int, int]]] = {}
         t0 = time.monotonic()
         round0_at = time.time()  # wall clock: start-up figures (command to round 0)
