@@ -393,6 +393,12 @@ class AgentProcess(RejoinChecks, Role):
                     bus.subscribe(keys.est(s, j), self.queue)
             for s in sorted(set(self.view.needed) | set(merged_ins)):
                 bus.subscribe(keys.ctl("done", s), self.queue)
+        # the channel's first draws on the links this agent decides (its in-links; an
+        # omniscient adversary's view: every link it reads) before round 0, not in it
+        links = [(j, self.id) for j in self.in_ids]
+        if self.view is not None:
+            links += [(s, j) for j, senders in sorted(self.view.before.items()) for s in senders]
+        self.node.channel.prepare(links)
         bus.watch(keys.alive_pattern(), self.queue)
         bus.announce(keys.alive("agent", self.id))
         consumer = asyncio.ensure_future(self.consume())
