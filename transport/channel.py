@@ -68,8 +68,9 @@ class Channel:
 
     def prepare(self, links: Iterable[tuple[int, int]]) -> None:
         """Draw the first block of each ``(sender, receiver)`` link now: a process calls
-        this before its first round, which then pays neither for the draws nor for
-        importing ``numpy.random`` (20-40 ms of CPU in each agent process)."""
+        this before its first round, which then does not pay for the draws (nor, in a
+        process whose parent did not import it, for importing ``numpy.random``: 15 to 40 ms
+        of CPU; the fork server preloads it, :data:`agents.net.startup.PRELOAD`)."""
         if self.perfect:
             return
         for sender, receiver in links:

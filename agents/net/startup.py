@@ -16,7 +16,7 @@ from estimation.errors import ScenarioError
 
 #: what the fork server imports once for every child it forks (an agent needs nothing else
 #: but its estimator's module); the plant and monitor import the rest of theirs after the fork
-PRELOAD = ["numpy", "msgpack", "zenoh", "uvloop", "transport.codec", "transport.keys", "transport.zenoh_bus",
+PRELOAD = ["numpy", "numpy.random", "msgpack", "zenoh", "uvloop", "transport.codec", "transport.keys", "transport.zenoh_bus",
            "transport.zenoh_session", "transport.channel", "transport.byzantine", "agents.node", "agents.net.child",
            "agents.net.agent", "agents.net.plant", "agents.net.slices",
            # the built-in estimators (numpy only at import; an agent unpickles one of them)
