@@ -70,7 +70,7 @@ class Channel:
         """Draw the first block of each ``(sender, receiver)`` link now: a process calls
         this before its first round, which then does not pay for the draws (nor, in a
         process whose parent did not import it, for importing ``numpy.random``: 15 to 40 ms
-        of CPU; the fork server preloads it, :data:`agents.net.startup.PRELOAD`)."""
+        of CPU; the runtime's fork server preloads it)."""
         if self.perfect:
             return
         for sender, receiver in links:

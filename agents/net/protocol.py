@@ -29,14 +29,16 @@ member in-neighbour of ``i`` reported round ``k - 1`` done, and starts round ``k
 every member did (or the deadline passed; a member whose token went away is not waited
 for): an agent whose in-neighbours are done runs ahead while a straggler elsewhere (the
 omniscient adversary, whose round comes after the honest ones) finishes. Unpaced only; with
-``rate`` the whole round goes out at once. The meas message to agent ``i`` lists the in-neighbours whose round ``k - 1``
-messages were sent to ``i`` (from their done reports); the agent runs round ``k`` when
-all of them have physically arrived (or the deadline passed), so every message reaches
-``AgentNode.receive`` before the round in which the channel model makes it visible, and
-the estimates equal ``rse simulate``'s. A lockstep role wakes about once a round: what it
-does not need yet waits in the bridge (:meth:`Role.lazy_items`). **Realtime**: the plant
-ticks at ``rate`` Hz on the wall clock, agents run a round as soon as its measurement
-arrives, with whatever has arrived (late messages are placed by their stamps).
+``rate`` the whole round goes out at once. The meas message to agent ``i`` lists the
+in-neighbours whose round ``k - 1`` messages were sent to ``i`` (from their done reports);
+the agent runs round ``k`` when all of them have physically arrived (or the deadline
+passed), so every message reaches ``AgentNode.receive`` before the round in which the
+channel model makes it visible, and the estimates equal ``rse simulate``'s. A lockstep
+agent wakes about once a round, the plant two or three times (once all but one report
+came, then at the last): what a role does not need yet waits in the bridge
+(:meth:`Role.lazy_items`). **Realtime**: the plant ticks at ``rate`` Hz on the wall clock,
+agents run a round as soon as its measurement arrives, with whatever has arrived (late
+messages are placed by their stamps).
 
 **Joining**: an agent subscribes, declares its token, waits until it sees the plant's and
 the monitor's tokens (and its neighbours', or the team is already running), then sends
