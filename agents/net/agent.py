@@ -99,9 +99,10 @@ class AgentProcess(RejoinChecks, Role):
 
     def lazy_items(self) -> Callable[[Any], bool] | None:
         # lockstep: what the next round needs comes before its measurement, which wakes
-        # this agent; an omniscient adversary (a view) waits for reports, not measurements
+        # this agent; an omniscient adversary (a view) then sleeps until as many messages
+        # came as its view still misses (_release_held)
         loc = self._loc_key
-        ok = self.cfg.mode == "lockstep" and self.view is None
+        ok = self.cfg.mode == "lockstep"
         return (lambda item: item[0] != loc and type(item[1]) is bytes) if ok else None
 
     def handle_data(self, key: str, payload: bytes) -> None:
@@ -237,9 +238,15 @@ class AgentProcess(RejoinChecks, Role):
         view is complete (or the deadline passed). Returns whether it was published."""
         k, out, t0 = self._held
         view = self.view
-        if not view.ready(k, lambda s: ("agent", s) in self.alive):
+        missing = view.missing(k, lambda s: ("agent", s) in self.alive)
+        if missing:
             if now < t0 + self.cfg.deadline:
+                self.wake_at(missing)  # the messages still to come before it is complete
                 self._tick_at(t0 + self.cfg.deadline)
+                return False
+            if self._lazy_n > 1:  # the deadline: first take what waits in the bridge
+                self.wake_at(1)
+                self._tick_at(now)
                 return False
             self.waited_out += 1
             if self.waited_out in (1, 10, 100, 1000):

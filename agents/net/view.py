@@ -68,8 +68,15 @@ class NetworkView(OmniscientView):
     def ready(self, k: int, alive: Callable[[int], bool]) -> bool:
         """Every agent the view needs reported round ``k`` and its round-``k`` messages to
         my out-neighbours arrived (agents that are not alive are not waited for)."""
+        return self.missing(k, alive) == 0
+
+    def missing(self, k: int, alive: Callable[[int], bool]) -> int:
+        """How many live agents the view needs have not reported round ``k`` yet, plus one
+        if some reported messages have not arrived: at least that many messages are still
+        to come before :meth:`ready` (the agent sleeps until then)."""
         done = self.done.get(k, {})
         bcast = self.bcast
+        silent, late = 0, 0
         for s in self.needed:
             if (s, k) in bcast:
                 # a broadcast round-k estimate: an agent either broadcasts or addresses its
@@ -78,12 +85,11 @@ class NetworkView(OmniscientView):
             d = done.get(s)
             if d is None:
                 if alive(s):
-                    return False
+                    silent += 1
                 continue
-            for j, st in d:
-                if (s, j, st) not in self.addr and (s, st) not in self.bcast:
-                    return False
-        return True
+            if not late and any((s, j, st) not in self.addr and (s, st) not in bcast for j, st in d):
+                late = 1
+        return silent + late
 
     def visible(self, sender: int, receiver: int, k: int) -> Any:
         v = self.addr.get((sender, receiver, k))

@@ -230,3 +230,32 @@ def test_the_fork_servers_preload_covers_the_channels_first_draws():
             "print(sorted(set(sys.modules) - before))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_the_views_missing_count_is_what_its_agent_sleeps_for():
+    """NetworkView.missing(k): the live agents the view needs that have not reported round
+    k, plus one while a reported message has not arrived; 0 exactly when ready(k). The
+    lockstep adversary sleeps until that many messages came (a lower bound: never more)."""
+    exp, _ = load_experiment(SCENARIOS / "mitra_cells.toml", ("run.rounds=5", "expect=[]"), None)
+    (b,) = exp.byzantine
+    topo = view_topology(exp, exp.agent_ids[b], {})
+    view = NetworkView(topo, make_channel(exp))
+    view.forget(3)
+    needed = list(topo.needed)
+    assert len(needed) >= 3
+    everyone = lambda s: True
+    assert view.missing(3, everyone) == len(needed) and not view.ready(3, everyone)
+    gone = needed[0]
+    assert view.missing(3, lambda s: s != gone) == len(needed) - 1
+    x = np.zeros(exp.n)
+    view.add(needed[0], None, 3, x)  # a broadcast estimate: nothing else of it to come
+    assert view.missing(3, everyone) == len(needed) - 1
+    j = next(iter(view.out_set))
+    view.add_done(needed[1], 3, [(j, 3)])  # reported a message to j that has not arrived
+    assert view.missing(3, everyone) == len(needed) - 2 + 1
+    view.add(needed[1], j, 3, x)
+    assert view.missing(3, everyone) == len(needed) - 2
+    for s in needed[2:]:
+        view.add_done(s, 3, [])
+    assert view.missing(3, everyone) == 0 and view.ready(3, everyone)
+    assert view.missing(2, everyone) == len(needed)  # another round: nothing of it here
