@@ -74,7 +74,11 @@ def sizes_for(exp: Any) -> Sizes:
                  for i in range(exp.N))
     truth = len(encode(Message(kind="truth", sender=PLANT_ID, stamp=123456, arrays={"x": x})))
     est = len(encode(Message(kind="est", sender=ids[0], stamp=123456, arrays={"x": x})))
-    done = tuple(len(encode(Message(kind="done", sender=ids[i], stamp=123456, arrays={"x": x, "to": np.ones(len(outs[i]))})))
+    # an honest agent's lockstep report is its broadcast estimate alone (kind "est");
+    # a Byzantine agent's names its receivers and their stamps
+    done = tuple(len(encode(Message(kind="done", sender=ids[i], stamp=123456,
+                                    arrays={"x": x, "to": np.ones(len(outs[i])), "stamps": np.ones(len(outs[i]))})))
+                 if i in exp.byzantine_specs else len(encode(Message(kind="est", sender=ids[i], stamp=123456, arrays={"x": x})))
                  for i in range(exp.N))
     from agents.middleware import byzantine_strategy
     from agents.net.view import reads_view, view_topology

@@ -156,17 +156,25 @@ class AgentProcess(RejoinChecks, Role):
             return
         self._take(j, m.stamp, m.arrays["x"])
 
-    def _merged_done(self, key: str, payload: bytes) -> tuple[int, int, np.ndarray, list[int]] | None:
+    def _merged_done(self, key: str, payload: bytes) -> tuple[int, int, np.ndarray, list[int] | None] | None:
         """The done report of an in-neighbour whose report carries its estimate (see
         :attr:`~agents.net.slices.AgentSlice.merged`): handed to the node as its estimate
         message when it names this agent among its receivers. Returns ``(sender, stamp, x,
-        receivers)`` of a valid report."""
+        receivers)`` of a valid report; receivers None: a broadcast report (kind "est",
+        :func:`~agents.net.protocol.report_to`), to every out-neighbour stamped with its round."""
         got = self.decode(key, payload, self.wire.done)
         if got is None:
             return None
         p, m = got
         j = p.sender
-        got_to = receivers_of(m, self.part.N) if j in self.part.merged else None
+        if j not in self.part.merged:
+            self.rejects.add(j, "range")
+            return None
+        if m.kind == "est":
+            if j in self.node.links:  # an in-neighbour: this agent is one of its receivers
+                self._take(j, m.stamp, m.arrays["x"])
+            return j, m.stamp, m.arrays["x"], None
+        got_to = receivers_of(m, self.part.N)
         if got_to is None:
             self.rejects.add(j, "range")
             return None
@@ -197,15 +205,18 @@ class AgentProcess(RejoinChecks, Role):
             got = self._merged_done(key, payload)  # an estimate too: for my inbox and for the view
             if got is not None:
                 j, stamp, x, receivers = got
-                if receivers and self.view.wants(j, None):
+                if (receivers is None or receivers) and self.view.wants(j, None):
                     self.view.add(j, None, stamp, x)
-                self.view.add_done(j, stamp, [(r, stamp) for r in receivers])
+                self.view.add_done(j, stamp, [(r, stamp) for r in receivers or ()])
             return
         if p.kind == "ctl":
             try:
                 m = decode(payload, schema=self._done_schema, expected_sender=p.sender)
             except MessageError as exc:
                 self.rejects.add(p.sender, exc.reason)
+                return
+            if m.kind != "done":  # a broadcast report comes only from an agent whose report is its estimate
+                self.rejects.add(p.sender, "type")
                 return
             got_to = receivers_of(m, self.part.N) if p.sender in self.view.index_of else None
             if got_to is None:
@@ -300,6 +311,9 @@ class AgentProcess(RejoinChecks, Role):
             own, meta = np.zeros_like(own), {"nonfinite": True}
         if self._diagnostics:
             meta.update(diagnostics_meta(node.estimator))
+        if self._merge and to:  # a broadcast report: the estimate, to every out-neighbour stamped k
+            bus.publish(self._done_key, _msg("est", aid, k, {"x": own}, meta=meta or None))
+            return
         arrays = {"x": own, "to": np.array(to, dtype=float), "stamps": np.array(stamps, dtype=float)}
         bus.publish(self._done_key, _msg("done", aid, k, arrays, meta=meta or None))
 

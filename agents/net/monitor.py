@@ -75,6 +75,7 @@ class MonitorProcess(Role):
         self.stats: dict[str, Message] = {}
         self.membership: list[dict[str, Any]] = []
         self.index = {aid: i for i, aid in enumerate(exp.agent_ids)}
+        self._outs = {aid: [exp.agent_ids[j] for j in exp.out_neighbours(i)] for i, aid in enumerate(exp.agent_ids)}
         # a monitor that starts with the team expects every agent until it has seen each
         # one's token: the tokens can reach it after the plant's truth of the first rounds
         # (through a loaded router), and a round closed then would lack those agents
@@ -143,7 +144,7 @@ class MonitorProcess(Role):
 
         mon.on_chunk = on_chunk
 
-    def _links_of(self, sender: int, stamp: int, to: np.ndarray, stamps: np.ndarray) -> None:
+    def _links_of(self, sender: int, stamp: int, to: Any, stamps: Any) -> None:
         """Dashboard bookkeeping of one done report (see :meth:`_setup_dashboard`)."""
         from agents.rounds import count_fate
 
@@ -209,7 +210,11 @@ class MonitorProcess(Role):
                 if diag or flag is not None:
                     r.diag[i] = (diag, flag)
             if self.dashboard is not None:
-                self._links_of(p.sender, k, m.arrays["to"], m.arrays["stamps"])
+                if m.kind == "est":  # a broadcast report: to every out-neighbour, stamped k
+                    outs = self._outs[p.sender]
+                    self._links_of(p.sender, k, outs, [k] * len(outs))
+                else:
+                    self._links_of(p.sender, k, m.arrays["to"], m.arrays["stamps"])
         elif "/ctl/stats/" in key:
             got = self.decode(key, payload, self.wire.stats)
             if got is not None:

@@ -19,7 +19,7 @@ from transport.codec import MONITOR_ID, PLANT_ID
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import MAX_AHEAD, Role, RunConfig, _msg, receivers_of
+from .protocol import MAX_AHEAD, Role, RunConfig, _msg, report_to
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -83,7 +83,7 @@ class PlantProcess(Role):
                 return
             p, m = got
             allowed = self.out_ids.get(p.sender)
-            got_to = None if allowed is None else receivers_of(m, len(allowed))
+            got_to = None if allowed is None else report_to(m, sorted(allowed), len(allowed))
             if got_to is None or not allowed.issuperset(got_to[0]):
                 self.rejects.add(p.sender, "range")
                 return

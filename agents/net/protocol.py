@@ -57,7 +57,7 @@ import math
 import resource
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -183,7 +183,10 @@ class Wire:
         self.loc = Schema({"meas": {"y": (None,), "wait": (None, 2)}, "ctl": {"wait": (None, 2)}})
         self.truth = Schema({"truth": {"x": (n,)}})
         self.est = Schema({"est": {"x": (None,)}})
-        self.done = Schema({"done": {"x": (n,), "to": (None,), "stamps": (None,)}})
+        #: a done key carries a report ("done": the estimate, whom the round's messages went
+        #: to and their stamps) or, from an agent that broadcast its estimate stamped with the
+        #: round to every out-neighbour, the estimate alone ("est": see :func:`report_to`)
+        self.done = Schema({"done": {"x": (n,), "to": (None,), "stamps": (None,)}, "est": {"x": (n,)}})
         self.ctl = Schema({"ctl": {}})
         self.stats = Schema({"ctl": {"links": (None, 6), "rejected": (None, 3)}})
 
@@ -242,6 +245,15 @@ class Rejects:
 
 def _msg(kind: str, sender: int, stamp: int, arrays: dict, **kw: Any) -> bytes:
     return encode_fields(kind, sender, stamp, arrays, **kw)
+
+
+def report_to(m: Message, out_ids: Sequence[int], team: int) -> tuple[list[int], list[int]] | None:
+    """Whom the round of a done-key message went to and with which stamps: every one of
+    ``out_ids`` (the sender's out-neighbours) stamped with the round for an "est" (a
+    broadcast report), else :func:`receivers_of`."""
+    if m.kind == "est":
+        return list(out_ids), [m.stamp] * len(out_ids)
+    return receivers_of(m, team)
 
 
 def receivers_of(m: Message, team: int) -> tuple[list[int], list[int]] | None:

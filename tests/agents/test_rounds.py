@@ -259,3 +259,21 @@ def test_the_views_missing_count_is_what_its_agent_sleeps_for():
         view.add_done(s, 3, [])
     assert view.missing(3, everyone) == 0 and view.ready(3, everyone)
     assert view.missing(2, everyone) == len(needed)  # another round: nothing of it here
+
+
+def test_a_broadcast_report_names_every_out_neighbour_at_its_round():
+    """report_to: an "est" on a done key (an honest agent's estimate, broadcast) went to
+    every out-neighbour stamped with its round; a "done" names its receivers itself."""
+    from agents.net.protocol import Wire, report_to
+    from transport.codec import decode, encode_fields
+
+    exp, _ = load_experiment(SCENARIOS / "mitra_cells.toml", ("run.rounds=5", "expect=[]"), None)
+    wire = Wire(exp)
+    x = np.zeros(exp.n)
+    bcast = decode(encode_fields("est", 3, 7, {"x": x}), schema=wire.done, expected_sender=3)
+    assert report_to(bcast, [1, 4, 9], exp.N) == ([1, 4, 9], [7, 7, 7])
+    named = decode(encode_fields("done", 3, 7, {"x": x, "to": np.array([4.0]), "stamps": np.array([6.0])}),
+                   schema=wire.done, expected_sender=3)
+    assert report_to(named, [1, 4, 9], exp.N) == ([4], [6])
+    assert len(encode_fields("est", 3, 7, {"x": x})) < len(encode_fields("done", 3, 7, {"x": x, "to": np.arange(8.0),
+                                                                                       "stamps": np.full(8, 7.0)}))
