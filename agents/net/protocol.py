@@ -16,7 +16,9 @@ The round protocol (keys from :class:`transport.keys.Keys`)::
             or rse/{run}/agent/{i}/est/{j}  "est"   addressed payloads (Byzantine)
     agent i -> rse/{run}/ctl/done/{i}       "done"  own estimate x_i[k], receivers  (plant, monitor;
                                             and, in lockstep, i's out-neighbours when i's payload
-                                            is its estimate: then i sends no "est")
+                                            is its estimate: then i sends no "est", and when it
+                                            went to every out-neighbour the report is an "est"
+                                            of x_i[k] alone: see report_to)
     agent i -> rse/{run}/ctl/ready/{i}      joining the team                    (plant)
     monitor -> rse/{run}/ctl/ack/monitor    rounds recorded (flow control)      (plant)
     plant   -> rse/{run}/plant/loc/{i}      "ctl" cmd=stop, wait list           (agent i)
@@ -35,10 +37,11 @@ the agent runs round ``k`` when all of them have physically arrived (or the dead
 passed), so every message reaches ``AgentNode.receive`` before the round in which the
 channel model makes it visible, and the estimates equal ``rse simulate``'s. A lockstep
 agent wakes about once a round, the plant two or three times (once all but one report
-came, then at the last): what a role does not need yet waits in the bridge
-(:meth:`Role.lazy_items`). **Realtime**: the plant ticks at ``rate`` Hz on the wall clock,
-agents run a round as soon as its measurement arrives, with whatever has arrived (late
-messages are placed by their stamps).
+came, then at the last), the omniscient adversary once for its measurement and then
+once as many messages came as its view still misses: what a role does not need yet waits
+in the bridge (:meth:`Role.lazy_items`). **Realtime**: the plant ticks at ``rate`` Hz on
+the wall clock, agents run a round as soon as its measurement arrives, with whatever has
+arrived (late messages are placed by their stamps).
 
 **Joining**: an agent subscribes, declares its token, waits until it sees the plant's and
 the monitor's tokens (and its neighbours', or the team is already running), then sends
