@@ -59,6 +59,7 @@ class PlantProcess(Role):
         self._expected: set[int] = set()  # the members the round waits for (those it started with)
         out_ids = {aid: {exp.agent_ids[j] for j in exp.out_neighbours(i)} for i, aid in enumerate(exp.agent_ids)}
         self.out_ids = out_ids
+        self._out_lists = {aid: sorted(outs) for aid, outs in out_ids.items()}  # report_to's order
         self.in_ids = {r: sorted(s for s, outs in out_ids.items() if r in outs) for r in exp.agent_ids}
         self._next: _NextRound | None = None  # lockstep: round k + 1, released agent by agent
         self._reads, self._index = Reads(exp), {aid: i for i, aid in enumerate(exp.agent_ids)}
@@ -83,7 +84,7 @@ class PlantProcess(Role):
                 return
             p, m = got
             allowed = self.out_ids.get(p.sender)
-            got_to = None if allowed is None else report_to(m, sorted(allowed), len(allowed))
+            got_to = None if allowed is None else report_to(m, self._out_lists[p.sender], len(allowed))
             if got_to is None or not allowed.issuperset(got_to[0]):
                 self.rejects.add(p.sender, "range")
                 return
