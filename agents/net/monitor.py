@@ -19,7 +19,23 @@ from transport.codec import MONITOR_ID, PLANT_ID, Message
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import ACK_EVERY, MONITOR_LAG, RECONNECTS, UNHEARD_S, Rejects, Role, RunConfig, _msg, cpu_s, diagnostics_from_meta, maxrss_mb, uss_mb, who_name
+from .protocol import (
+    ACK_EVERY,
+    MONITOR_LAG,
+    RECONNECTS,
+    UNHEARD_S,
+    Rejects,
+    Role,
+    RunConfig,
+    _msg,
+    cpu_s,
+    diagnostics_from_meta,
+    maxrss_mb,
+    out_ids_of,
+    report_to,
+    uss_mb,
+    who_name,
+)
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -75,7 +91,7 @@ class MonitorProcess(Role):
         self.stats: dict[str, Message] = {}
         self.membership: list[dict[str, Any]] = []
         self.index = {aid: i for i, aid in enumerate(exp.agent_ids)}
-        self._outs = {aid: [exp.agent_ids[j] for j in exp.out_neighbours(i)] for i, aid in enumerate(exp.agent_ids)}
+        self._outs = out_ids_of(exp)  # a broadcast report's receivers (report_to)
         # a monitor that starts with the team expects every agent until it has seen each
         # one's token: the tokens can reach it after the plant's truth of the first rounds
         # (through a loaded router), and a round closed then would lack those agents
@@ -210,11 +226,9 @@ class MonitorProcess(Role):
                 if diag or flag is not None:
                     r.diag[i] = (diag, flag)
             if self.dashboard is not None:
-                if m.kind == "est":  # a broadcast report: to every out-neighbour, stamped k
-                    outs = self._outs[p.sender]
-                    self._links_of(p.sender, k, outs, [k] * len(outs))
-                else:
-                    self._links_of(p.sender, k, m.arrays["to"], m.arrays["stamps"])
+                sent = report_to(m, self._outs[p.sender], self.exp.N) if m.kind == "est" else None
+                to, stamps = sent or (m.arrays["to"], m.arrays["stamps"])
+                self._links_of(p.sender, k, to, stamps)
         elif "/ctl/stats/" in key:
             got = self.decode(key, payload, self.wire.stats)
             if got is not None:

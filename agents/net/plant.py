@@ -19,7 +19,7 @@ from transport.codec import MONITOR_ID, PLANT_ID
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import MAX_AHEAD, Role, RunConfig, _msg, report_to
+from .protocol import MAX_AHEAD, Role, RunConfig, _msg, out_ids_of, report_to
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -57,9 +57,8 @@ class PlantProcess(Role):
         self.missed: Counter[int] = Counter()
         self._counting: dict[int, list[tuple[int, int]]] | None = None  # the reports the round waits for
         self._expected: set[int] = set()  # the members the round waits for (those it started with)
-        out_ids = {aid: {exp.agent_ids[j] for j in exp.out_neighbours(i)} for i, aid in enumerate(exp.agent_ids)}
-        self.out_ids = out_ids
-        self._out_lists = {aid: sorted(outs) for aid, outs in out_ids.items()}  # report_to's order
+        self._out_lists = out_ids_of(exp)  # a broadcast report's receivers (report_to)
+        out_ids = self.out_ids = {aid: set(outs) for aid, outs in self._out_lists.items()}
         self.in_ids = {r: sorted(s for s, outs in out_ids.items() if r in outs) for r in exp.agent_ids}
         self._next: _NextRound | None = None  # lockstep: round k + 1, released agent by agent
         self._reads, self._index = Reads(exp), {aid: i for i, aid in enumerate(exp.agent_ids)}

@@ -250,6 +250,12 @@ def _msg(kind: str, sender: int, stamp: int, arrays: dict, **kw: Any) -> bytes:
     return encode_fields(kind, sender, stamp, arrays, **kw)
 
 
+def out_ids_of(exp: Experiment) -> dict[int, list[int]]:
+    """Agent id -> the ids of its out-neighbours (whom a broadcast report went to)."""
+    ids = exp.agent_ids
+    return {aid: [ids[j] for j in exp.out_neighbours(i)] for i, aid in enumerate(ids)}
+
+
 def report_to(m: Message, out_ids: Sequence[int], team: int) -> tuple[list[int], list[int]] | None:
     """Whom the round of a done-key message went to and with which stamps: every one of
     ``out_ids`` (the sender's out-neighbours) stamped with the round for an "est" (a
