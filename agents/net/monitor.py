@@ -226,8 +226,8 @@ class MonitorProcess(Role):
                 if diag or flag is not None:
                     r.diag[i] = (diag, flag)
             if self.dashboard is not None:
-                sent = report_to(m, self._outs[p.sender], self.exp.N) if m.kind == "est" else None
-                to, stamps = sent or (m.arrays["to"], m.arrays["stamps"])
+                to, stamps = (report_to(m, self._outs[p.sender], self.exp.N) if m.kind == "est"
+                              else (m.arrays["to"], m.arrays["stamps"]))
                 self._links_of(p.sender, k, to, stamps)
         elif "/ctl/stats/" in key:
             got = self.decode(key, payload, self.wire.stats)

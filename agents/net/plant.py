@@ -84,7 +84,8 @@ class PlantProcess(Role):
             p, m = got
             allowed = self.out_ids.get(p.sender)
             got_to = None if allowed is None else report_to(m, self._out_lists[p.sender], len(allowed))
-            if got_to is None or not allowed.issuperset(got_to[0]):
+            # a broadcast report's receivers are the out-neighbours themselves (report_to)
+            if got_to is None or (m.kind != "est" and not allowed.issuperset(got_to[0])):
                 self.rejects.add(p.sender, "range")
                 return
             rnd = self.done.get(m.stamp)
