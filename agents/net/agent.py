@@ -30,6 +30,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rse.net")
 
+POLL_S = 0.001  # lockstep: how soon a round missing a polled message looks again (_poll_later; libuv counts whole ms)
+
 
 class AgentProcess(RejoinChecks, Role):
     name = "agent"
@@ -65,6 +67,8 @@ class AgentProcess(RejoinChecks, Role):
         self.skipped = 0
         self.waited_out = 0
         self._timer: asyncio.TimerHandle | None = None
+        self._poll: asyncio.TimerHandle | None = None  # _poll_later
+        self.polls = 0
         from agents.monitor import has_diagnostics
 
         self._diagnostics = has_diagnostics(self.node.estimator)
@@ -215,12 +219,10 @@ class AgentProcess(RejoinChecks, Role):
             except MessageError as exc:
                 self.rejects.add(p.sender, exc.reason)
                 return
-            if m.kind != "done":  # a broadcast report comes only from an agent whose report is its estimate
-                self.rejects.add(p.sender, "type")
-                return
-            got_to = receivers_of(m, self.part.N) if p.sender in self.view.index_of else None
+            # a broadcast report comes only from an agent whose report is its estimate
+            got_to = receivers_of(m, self.part.N) if m.kind == "done" and p.sender in self.view.index_of else None
             if got_to is None:
-                self.rejects.add(p.sender, "range")
+                self.rejects.add(p.sender, "type" if m.kind != "done" else "range")
                 return
             self.view.add_done(p.sender, m.stamp, list(zip(*got_to)))
             return
@@ -270,6 +272,15 @@ class AgentProcess(RejoinChecks, Role):
     def _arrived_all(self, wait: np.ndarray) -> bool:
         arrived = self.arrived
         return all(int(j) in arrived.get(int(s), ()) for j, s in wait)
+
+    def _poll_later(self) -> None:
+        # lockstep: a round misses messages of polled subscriptions (their arrival wakes nobody)
+        if self._poll is None and self._polled:
+            self._poll = asyncio.get_running_loop().call_later(POLL_S, self._poll_now)
+
+    def _poll_now(self) -> None:
+        self._poll, self.polls = None, self.polls + 1
+        self.handle_batch([])
 
     def _tick_at(self, when: float) -> None:
         if self._timer is not None:
@@ -329,6 +340,7 @@ class AgentProcess(RejoinChecks, Role):
                 y, wait, t_arr = self.meas[k]
                 if not self._arrived_all(wait):
                     self.wake_at(1)  # each message may be the one missing
+                    self._poll_later()
                     if now < t_arr + self.cfg.deadline:
                         self._tick_at(t_arr + self.cfg.deadline)
                         return
@@ -357,6 +369,7 @@ class AgentProcess(RejoinChecks, Role):
             K, wait, t_arr = self.stop
             if lockstep and self.member and not self._arrived_all(wait) and now < t_arr + self.cfg.deadline:
                 self.wake_at(1)
+                self._poll_later()
                 self._tick_at(t_arr + self.cfg.deadline)
                 return
             self.finished.set()
@@ -396,11 +409,14 @@ class AgentProcess(RejoinChecks, Role):
         bus.subscribe(self._loc_key, self.queue)
         merged_ins = [j for j in self.in_ids if j in self.part.merged] if self._merge_in else []
         if self.view is None:
+            # lockstep: the measurement wakes it; what its in-neighbours sent waits, polled
+            polled = cfg.mode == "lockstep"
             for j in self.in_ids:
-                bus.subscribe(keys.est(j), self.queue)
-            bus.subscribe(keys.est_pattern(to=self.id), self.queue)
+                if j not in merged_ins:  # a merged in-neighbour sends its estimate in its report only
+                    self.subscribe(keys.est(j), polled=polled)
+            self.subscribe(keys.est_pattern(to=self.id), polled=polled)
             for j in merged_ins:  # their estimates come in their done reports
-                bus.subscribe(keys.ctl("done", j), self.queue)
+                self.subscribe(keys.ctl("done", j), polled=polled)
         else:  # also the estimates its receivers will use, and the reports it waits for
             for j in sorted(set(self.in_ids) | set(self.view.needed)):
                 bus.subscribe(keys.est(j), self.queue)
@@ -459,20 +475,19 @@ class AgentProcess(RejoinChecks, Role):
                     await asyncio.wait_for(self.changed.wait(), timeout)
                 except TimeoutError:
                     pass
-            self.send_stats(self.id, link_rows(self.node.links), rounds=self.rounds_run, skipped=self.skipped, waited_out=self.waited_out)
+            self.send_stats(self.id, link_rows(self.node.links), rounds=self.rounds_run, skipped=self.skipped, waited_out=self.waited_out, polls=self.polls)
             await asyncio.sleep(0.05)
             return {"rounds": self.rounds_run}
         finally:
             consumer.cancel()
-            if self._timer is not None:
-                self._timer.cancel()
+            for handle in filter(None, (self._timer, self._poll)):
+                handle.cancel()
 
 
 async def run_agent(exp: Experiment, agent_id: int, bus: Bus, keys: Keys, cfg: RunConfig,
                     *, node_hook: Callable[[Any], None] | None = None, node: Any = None) -> dict[str, Any]:
-    """Agent ``agent_id`` (1-based id) of experiment ``exp`` until the plant stops the team.
-    ``node``: its :class:`~agents.node.AgentNode` if already built (else built here, as the
-    simulator does). A process that runs one agent uses :func:`run_agent_slice`."""
+    """Agent ``agent_id`` (1-based) of ``exp`` until the plant stops the team (``node``: its
+    AgentNode if already built). A process that runs one agent uses :func:`run_agent_slice`."""
     from .slices import agent_slice
 
     return await run_agent_slice(agent_slice(exp, agent_id, node), bus, keys, cfg, node_hook=node_hook)

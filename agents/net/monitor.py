@@ -109,15 +109,10 @@ class MonitorProcess(Role):
             return super().after_batch()
         return self.stop_round is not None or self.next_k == 0 or ("plant", 0) not in self.alive
 
-    #: lockstep: the monitor takes the reports and the truth in batches of this many messages
-    BATCH = 64
-
-    def lazy_items(self) -> Callable[[Any], bool] | None:
-        # lockstep: recorded in batches (the plant waits for this monitor only when it
-        # falls MAX_AHEAD rounds behind)
-        if self.cfg.mode != "lockstep":
-            return None
-        return lambda item: type(item[1]) is bytes and ("/ctl/done/" in item[0] or item[0].endswith("/plant/truth"))
+    #: lockstep: how often the monitor takes the reports and the truth (polled), and how
+    #: many of each its subscriptions hold meanwhile
+    POLL_S = 0.05
+    RING = 1 << 14
 
     def _setup_dashboard(self, dash: Any) -> None:
         """Stream to the Rerun dashboard as ``rse simulate`` does
@@ -340,14 +335,17 @@ class MonitorProcess(Role):
 
     async def run(self) -> MonitorResult:
         keys, bus = self.keys, self.bus
-        bus.subscribe(keys.plant_truth(), self.queue)
-        bus.subscribe(keys.ctl_pattern("done"), self.queue)
+        # lockstep: the truth and the reports wait, polled, and are recorded every POLL_S
+        # (no callback per message; the plant waits only MAX_AHEAD rounds ahead)
+        polled = self.cfg.mode == "lockstep"
+        self.subscribe(keys.plant_truth(), polled=polled, capacity=self.RING)
+        self.subscribe(keys.ctl_pattern("done"), polled=polled, capacity=self.RING)
         bus.subscribe(keys.ctl_pattern("stats"), self.queue)
         bus.subscribe(keys.ctl_pattern("stop"), self.queue)
         bus.watch(keys.alive_pattern(), self.queue)
         bus.announce(keys.alive("monitor", 0))
-        self.wake_at(self.BATCH)  # lockstep (lazy_items)
         consumer = asyncio.ensure_future(self.consume())
+        poller = asyncio.ensure_future(self._poll()) if polled else None
         try:
             return await self._run()
         except BaseException as exc:  # a signal, the plant gone: keep what was recorded
@@ -355,8 +353,15 @@ class MonitorProcess(Role):
             raise
         finally:
             consumer.cancel()
+            if poller is not None:
+                poller.cancel()
             if self.stream is not None:
                 self.stream.close()
+
+    async def _poll(self) -> None:
+        while True:
+            await asyncio.sleep(self.POLL_S)
+            self.handle_batch([])
 
     def _abort(self, exc: BaseException) -> None:
         """The run ends early: the rounds received are recorded, and the run directory is

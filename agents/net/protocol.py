@@ -69,7 +69,7 @@ import numpy as np
 from estimation.errors import MessageError
 from transport.codec import MIN_ID, MONITOR_ID, PLANT_ID, Message, Schema, decode, encode_fields
 from transport.keys import Keys, ParsedKey
-from transport.zenoh_bus import Bus
+from transport.zenoh_bus import POLLED_CAPACITY, Bus
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -296,6 +296,7 @@ class Role:
         self._wake_at: Callable[[int], None] | None = None  # see lazy_items
         self._lazy_n = 1
         self.batches = 0  # the batches handled: the wake-ups that brought messages
+        self._polled: list[Any] = []  # polled subscriptions (subscribe), drained with each batch
 
     def decode(self, key: str, payload: bytes, schema: Schema) -> tuple[ParsedKey, Message] | None:
         try:
@@ -378,8 +379,24 @@ class Role:
             if self._wake_at is not None:
                 self._wake_at(n)
 
+    def subscribe(self, pattern: str, *, polled: bool = False, capacity: int = POLLED_CAPACITY) -> None:
+        """Subscribe to ``pattern``: into the queue (each item may wake this role), or
+        ``polled`` (:meth:`transport.zenoh_bus.Bus.subscribe_polled`): its items wait
+        without a callback and are handled first in the next batch (what this role's
+        wake-ups bring, or :meth:`handle_batch` of nothing)."""
+        if polled:
+            self._polled.append(self.bus.subscribe_polled(pattern, capacity))
+        else:
+            self.bus.subscribe(pattern, self.queue)
+
     def handle_batch(self, items: list[Any]) -> None:
-        self.batches += 1
+        got = len(items)
+        for polled in self._polled:
+            drained = polled.drain()
+            got += len(drained)
+            for item in drained:
+                self.handle(item)
+        self.batches += got > 0
         for item in items:
             self.handle(item)
         if self.after_batch():

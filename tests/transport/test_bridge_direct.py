@@ -92,6 +92,7 @@ def test_a_role_handles_bursts_directly_and_queued_items_too():
             self._wake_at = None
             self.afters = 0
             self.batches = 0
+            self._polled = []
 
         def handle_data(self, key: str, payload: bytes) -> None:
             self.seen.append(payload)
