@@ -97,6 +97,7 @@ class MonitorProcess(Role):
         # (through a loaded router), and a round closed then would lack those agents
         self.unseen = set() if resume else set(self.index)
         self.t0 = time.monotonic()
+        self._K = exp.n_rounds  # the last round (a property of the scenario: read once)
         K = exp.n_rounds + 1
         self.traj = np.full((K, exp.N, exp.n), np.nan) if cfg.save_estimates else None
         self.truth = np.full((K, exp.n), np.nan) if cfg.save_estimates else None
@@ -104,7 +105,8 @@ class MonitorProcess(Role):
         self._last_wait_log = time.monotonic()
 
     def after_batch(self) -> bool:
-        # rounds are recorded by handle_data; the main loop only watches for the end
+        # the rounds a batch completed are recorded here; the main loop only watches for the end
+        self._close_rounds(final=False)
         if self._waiting is not None:
             return super().after_batch()
         return self.stop_round is not None or self.next_k == 0 or ("plant", 0) not in self.alive
@@ -189,7 +191,7 @@ class MonitorProcess(Role):
         return r
 
     def handle_data(self, key: str, payload: bytes) -> None:
-        K = self.exp.n_rounds
+        K = self._K
         if key.endswith("/plant/truth"):
             got = self.decode(key, payload, self.wire.truth)
             if got is None:
@@ -235,7 +237,6 @@ class MonitorProcess(Role):
                 self.wake_at(1)  # the last reports and the stats, as they come
         else:
             self.rejects.add(None, "key")
-        self._close_rounds(final=False)
 
     def _sync(self, k: int) -> None:
         """A rejoining monitor records from round ``k``."""
