@@ -116,16 +116,12 @@ def test_a_monitor_that_hears_the_team_late_still_records_the_first_rounds():
     keys = Keys("late")
     mon = MonitorProcess(exp, InMemoryHub().bus(), keys, RunConfig(save_estimates=True))
     empty = np.zeros(0)
-    for k in range(3):
-        mon.handle((keys.plant_truth(), _msg("truth", PLANT_ID, k, {"x": np.full(exp.n, float(k))})))
-        for a in exp.agent_ids:
-            mon.handle((keys.ctl("done", a), _msg("done", a, k, {"x": np.full(exp.n, k + a / 10), "to": empty,
-                                                                  "stamps": empty})))
+    for k in range(3):  # batches as the bus hands them over (the monitor closes rounds after each)
+        mon.handle_batch([(keys.plant_truth(), _msg("truth", PLANT_ID, k, {"x": np.full(exp.n, float(k))}))]
+                         + [(keys.ctl("done", a), _msg("done", a, k, {"x": np.full(exp.n, k + a / 10), "to": empty,
+                                                                      "stamps": empty})) for a in exp.agent_ids])
     assert mon.next_k == 0  # nothing closed before the monitor knows the team
-    mon.handle((keys.alive("plant", 0), True))
-    for a in exp.agent_ids:
-        mon.handle((keys.alive("agent", a), True))
-    mon.handle((keys.plant_truth(), _msg("truth", PLANT_ID, 3, {"x": np.zeros(exp.n)})))
-    assert mon.next_k == 3
+    mon.handle_batch([(keys.alive("plant", 0), True)] + [(keys.alive("agent", a), True) for a in exp.agent_ids])
+    assert mon.next_k == 3  # the tokens alone close the rounds they completed
     assert not np.isnan(mon.traj[:3]).any()
     np.testing.assert_array_equal(mon.traj[2, :, 0], [2 + a / 10 for a in exp.agent_ids])
