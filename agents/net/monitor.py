@@ -234,7 +234,6 @@ class MonitorProcess(Role):
             got = self.decode(key, payload, self.wire.ctl)
             if got is not None and got[0].sender == PLANT_ID:
                 self.stop_round = got[1].stamp
-                self.wake_at(1)  # the last reports and the stats, as they come
         else:
             self.rejects.add(None, "key")
 
