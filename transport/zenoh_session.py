@@ -31,6 +31,7 @@ from __future__ import annotations
 import atexit
 import json
 import logging
+import os
 import re
 import socket
 import threading
@@ -52,6 +53,8 @@ __all__ = [
     "make_config",
     "open_session",
     "close_session",
+    "ONE_THREAD_RUNTIME",
+    "one_zenoh_thread",
 ]
 
 log = logging.getLogger(__name__)
@@ -60,6 +63,27 @@ LOOPBACK = "127.0.0.1"
 SMALL_BATCH = 16384  # bytes: a link's batch and receive buffer with small_links
 MODES = frozenset({"peer", "client", "router"})
 _ENDPOINT_RE = re.compile(r"(tcp|udp|tls|quic|ws|unixsock-stream)/[^\s\"'\\]+\Z")
+
+#: ``ZENOH_RUNTIME`` (RON) that runs Zenoh's receive, transmit, network and accept tasks on
+#: its application runtime, whose one worker thread then does all of a session's work
+#: (Zenoh's default: ``app``, ``acc``, ``tx`` and ``net`` one thread each, ``rx`` two)
+ONE_THREAD_RUNTIME = "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app))"
+ZENOH_RUNTIME_ENV = "ZENOH_RUNTIME"
+
+
+def one_zenoh_thread() -> bool:
+    """Give this process's Zenoh one worker thread (:data:`ONE_THREAD_RUNTIME`), unless the
+    environment sets ``ZENOH_RUNTIME`` (``ZENOH_RUNTIME='()'``: Zenoh's own threads).
+
+    Call it before the process's first session: Zenoh reads the variable once, when it
+    starts its runtimes. Returns whether it set the variable. The roles of ``rse run`` call
+    it: on a machine with fewer cores than busy processes, one thread per process that both
+    receives and sends saves the hand-overs between Zenoh's threads.
+    """
+    if ZENOH_RUNTIME_ENV in os.environ:
+        return False
+    os.environ[ZENOH_RUNTIME_ENV] = ONE_THREAD_RUNTIME
+    return True
 
 
 def free_tcp_port(host: str = LOOPBACK) -> int:
@@ -315,6 +339,11 @@ def open_session(options: SessionOptions | zenoh.Config | None = None) -> zenoh.
         session = zenoh.open(config)
     except Exception as exc:  # zenoh.ZError (subclass of Exception only)
         raise TransportError(f"cannot open a Zenoh session ({where}): {exc}") from exc
+    except BaseException as exc:  # a Rust panic (pyo3's PanicException), e.g. a bad ZENOH_RUNTIME
+        if type(exc).__name__ != "PanicException":
+            raise
+        bad = f"; {ZENOH_RUNTIME_ENV}={os.environ[ZENOH_RUNTIME_ENV]!r}" if ZENOH_RUNTIME_ENV in os.environ else ""
+        raise TransportError(f"Zenoh failed to start ({where}{bad}): {str(exc).splitlines()[0][:300]}") from None
     with _open_lock:
         _open_sessions[:] = [s for s in _open_sessions if not s.is_closed()]
         _open_sessions.append(session)

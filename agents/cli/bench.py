@@ -164,7 +164,7 @@ def _print_one(console, start: str, N: int, rate: float, mini: float | None, ful
     console.print(f"rse run lockstep:         {rate:8,.1f} rounds/s  ({rate * N:,.0f} agent-rounds/s)")
     if mini and full:
         console.print(f"minimal Zenoh skeleton:   {mini:8,.1f} rounds/s  (a clock tick, one estimate and one done "
-                      f"per agent and round)")
+                      f"per agent and round; Zenoh's default threads, callbacks)")
         console.print(f"full-pattern skeleton:    {full:8,.1f} rounds/s  (the runtime's processes and messages)")
         console.print(f"runtime / minimal:        {rate / mini:8.0%}  (target >= 75%); runtime / full pattern "
                       f"{rate / full:.0%}")
@@ -219,4 +219,6 @@ def _memory_line(procs: dict, per_process: int = 1) -> str:
     what = "agent processes" if per_process == 1 else f"agent processes ({per_process} agents each)"
     return (f"{what}: peak RSS {fig(agents, 'maxrss_mb')} MB, USS {fig(agents, 'uss_mb')} MB (target RSS <= 60 MB); "
             f"plant: RSS {fig(plant, 'maxrss_mb')} MB, USS {fig(plant, 'uss_mb')} MB (<= 60); "
-            f"monitor: RSS {fig(monitor, 'maxrss_mb')} MB, USS {fig(monitor, 'uss_mb')} MB (<= 120)")
+            f"monitor: RSS {fig(monitor, 'maxrss_mb')} MB, USS {fig(monitor, 'uss_mb')} MB (<= 120)\n"
+            f"threads per process: agents {fig(agents, 'threads')}, plant {fig(plant, 'threads')}, "
+            f"monitor {fig(monitor, 'threads')} (Zenoh's on one thread; ZENOH_RUNTIME='()' for its own)")

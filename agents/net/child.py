@@ -82,8 +82,9 @@ def group_label(ids: tuple[int, ...] | list[int]) -> str:
 
 
 def _open(opts: Any) -> Any:
-    from transport.zenoh_session import SessionOptions, open_session, tcp_endpoint
+    from transport.zenoh_session import SessionOptions, one_zenoh_thread, open_session, tcp_endpoint
 
+    one_zenoh_thread()  # before the process's first session (ZENOH_RUNTIME)
     try:
         return open_session(opts)
     except TransportError:

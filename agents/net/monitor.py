@@ -33,6 +33,7 @@ from .protocol import (
     maxrss_mb,
     out_ids_of,
     report_to,
+    threads,
     uss_mb,
     who_name,
 )
@@ -433,7 +434,7 @@ class MonitorProcess(Role):
         regular = regular_mask(exp)
         rejected: dict[str, dict[str, int]] = {}
         processes: dict[str, Any] = {"monitor": {"maxrss_mb": maxrss_mb(), "uss_mb": uss_mb(), "batches": self.batches,
-                                                 "cpu_s": cpu_s()}}
+                                                 "cpu_s": cpu_s(), **threads()}}
         Rejects.merge(rejected, self.rejects.as_array())
         perf: dict[str, Any] = {}
         for who, m in sorted(self.stats.items()):

@@ -57,7 +57,9 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import os
 import resource
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -151,6 +153,24 @@ def cpu_s() -> float:
     """CPU seconds (user + system) of every thread of this process so far."""
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return round(usage.ru_utime + usage.ru_stime, 3)
+
+
+def threads() -> dict[str, int]:
+    """Threads of this process now: ``threads`` (Python's and Zenoh's; from ``/proc/self/task``,
+    else Python's alone) and ``zenoh_io_threads``, those of Zenoh's ``rx``, ``tx``, ``net`` and
+    ``acc`` runtimes (0 when they hand over to ``app``: ``transport.zenoh_session.one_zenoh_thread``)."""
+    try:
+        tasks = os.listdir("/proc/self/task")
+    except OSError:
+        return {"threads": threading.active_count()}
+    io = 0
+    for t in tasks:
+        try:
+            with open(f"/proc/self/task/{t}/comm") as f:
+                io += f.read().startswith(("rx-", "tx-", "net-", "acc-"))
+        except OSError:  # the thread ended meanwhile
+            pass
+    return {"threads": len(tasks), "zenoh_io_threads": io}
 
 
 def uss_mb() -> float:
@@ -445,7 +465,7 @@ class Role:
     def send_stats(self, sender: int, links: np.ndarray | None = None, **meta: Any) -> None:
         links = np.zeros((0, 6)) if links is None else links
         meta = {"cmd": "stats", "maxrss_mb": maxrss_mb(), "bridge_dropped": int(self.bus.stats.dropped_full),
-                "batches": self.batches, "cpu_s": cpu_s(), **meta}
+                "batches": self.batches, "cpu_s": cpu_s(), **threads(), **meta}
         uss = uss_mb()
         if math.isfinite(uss):  # not on every system (the codec carries finite numbers only)
             meta["uss_mb"] = uss

@@ -168,6 +168,11 @@ def _assert_lazy_wakeups(out: Path, scenario: Path) -> None:
     assert procs["monitor"]["batches"] <= 0.5 * rounds, procs["monitor"]
     # each process's CPU seconds (user + system, every thread): a process ran its rounds
     assert all(p["cpu_s"] > 0.05 for p in procs.values()), {k: p.get("cpu_s") for k, p in procs.items()}
+    # Zenoh's work on one thread per process (transport.zenoh_session.one_zenoh_thread): none
+    # of its rx, tx, net and acc threads (5 in a process on Zenoh's default runtimes)
+    if "ZENOH_RUNTIME" not in os.environ:
+        io = {k: p.get("zenoh_io_threads") for k, p in procs.items()}
+        assert set(io.values()) == {0}, io
 
 
 def test_run_through_a_router_equals_the_simulator(procs, tmp_path):
@@ -284,7 +289,7 @@ def test_bench_run_prints_both_rates(procs):
     so, se = p.communicate(timeout=55)
     assert p.returncode == 0, se
     for line in ("rse run lockstep:", "minimal Zenoh skeleton:", "full-pattern skeleton:", "runtime / minimal:",
-                 "start-up, this command to round 0:", "agent processes: peak RSS"):
+                 "start-up, this command to round 0:", "agent processes: peak RSS", "threads per process: agents"):
         assert line in so, so
 
 
