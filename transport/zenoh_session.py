@@ -53,8 +53,10 @@ __all__ = [
     "make_config",
     "open_session",
     "close_session",
+    "HANDED_OVER",
     "ONE_THREAD_RUNTIME",
     "one_zenoh_thread",
+    "thread_counts",
 ]
 
 log = logging.getLogger(__name__)
@@ -64,10 +66,12 @@ SMALL_BATCH = 16384  # bytes: a link's batch and receive buffer with small_links
 MODES = frozenset({"peer", "client", "router"})
 _ENDPOINT_RE = re.compile(r"(tcp|udp|tls|quic|ws|unixsock-stream)/[^\s\"'\\]+\Z")
 
-#: ``ZENOH_RUNTIME`` (RON) that runs Zenoh's receive, transmit, network and accept tasks on
-#: its application runtime, whose one worker thread then does all of a session's work
-#: (Zenoh's default: ``app``, ``acc``, ``tx`` and ``net`` one thread each, ``rx`` two)
-ONE_THREAD_RUNTIME = "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app))"
+#: Zenoh's receive, transmit, network and accept runtimes (their threads are named ``rx-0``,
+#: ...; Zenoh's default: ``app``, ``acc``, ``tx`` and ``net`` one thread each, ``rx`` two)
+HANDED_OVER = ("rx", "tx", "net", "acc")
+#: ``ZENOH_RUNTIME`` (RON) that hands those runtimes over to the application runtime, whose
+#: one worker thread then does all of a session's work
+ONE_THREAD_RUNTIME = "(" + ", ".join(f"{rt}: (handover: app)" for rt in HANDED_OVER) + ")"
 ZENOH_RUNTIME_ENV = "ZENOH_RUNTIME"
 
 
@@ -84,6 +88,25 @@ def one_zenoh_thread() -> bool:
         return False
     os.environ[ZENOH_RUNTIME_ENV] = ONE_THREAD_RUNTIME
     return True
+
+
+def thread_counts() -> dict[str, int]:
+    """Threads of this process now: ``threads`` (Python's and Zenoh's; from ``/proc/self/task``,
+    else Python's alone) and ``zenoh_io_threads``, those of the :data:`HANDED_OVER` runtimes
+    (0 after :func:`one_zenoh_thread`)."""
+    try:
+        tasks = os.listdir("/proc/self/task")
+    except OSError:
+        return {"threads": threading.active_count()}
+    prefixes = tuple(f"{rt}-" for rt in HANDED_OVER)
+    io = 0
+    for t in tasks:
+        try:
+            with open(f"/proc/self/task/{t}/comm") as f:
+                io += f.read().startswith(prefixes)
+        except OSError:  # the thread ended meanwhile
+            pass
+    return {"threads": len(tasks), "zenoh_io_threads": io}
 
 
 def free_tcp_port(host: str = LOOPBACK) -> int:

@@ -217,8 +217,11 @@ def _memory_line(procs: dict, per_process: int = 1) -> str:
     agents = [r for who, r in procs.items() if who.startswith("agent")]
     plant, monitor = [procs.get("plant", {})], [procs.get("monitor", {})]
     what = "agent processes" if per_process == 1 else f"agent processes ({per_process} agents each)"
+    io = [r.get("zenoh_io_threads") for r in [*agents, *plant, *monitor]]
+    zenoh = ("Zenoh's work on one thread; ZENOH_RUNTIME='()' for its own" if io and all(n == 0 for n in io)
+             else "Zenoh's own threads (ZENOH_RUNTIME)")
     return (f"{what}: peak RSS {fig(agents, 'maxrss_mb')} MB, USS {fig(agents, 'uss_mb')} MB (target RSS <= 60 MB); "
             f"plant: RSS {fig(plant, 'maxrss_mb')} MB, USS {fig(plant, 'uss_mb')} MB (<= 60); "
             f"monitor: RSS {fig(monitor, 'maxrss_mb')} MB, USS {fig(monitor, 'uss_mb')} MB (<= 120)\n"
             f"threads per process: agents {fig(agents, 'threads')}, plant {fig(plant, 'threads')}, "
-            f"monitor {fig(monitor, 'threads')} (Zenoh's on one thread; ZENOH_RUNTIME='()' for its own)")
+            f"monitor {fig(monitor, 'threads')} ({zenoh})")

@@ -28,13 +28,10 @@ from .protocol import (
     Role,
     RunConfig,
     _msg,
-    cpu_s,
     diagnostics_from_meta,
-    maxrss_mb,
     out_ids_of,
+    process_figures,
     report_to,
-    threads,
-    uss_mb,
     who_name,
 )
 
@@ -433,8 +430,7 @@ class MonitorProcess(Role):
             self.dashboard.flush()
         regular = regular_mask(exp)
         rejected: dict[str, dict[str, int]] = {}
-        processes: dict[str, Any] = {"monitor": {"maxrss_mb": maxrss_mb(), "uss_mb": uss_mb(), "batches": self.batches,
-                                                 "cpu_s": cpu_s(), **threads()}}
+        processes: dict[str, Any] = {"monitor": {**process_figures(), "batches": self.batches}}
         Rejects.merge(rejected, self.rejects.as_array())
         perf: dict[str, Any] = {}
         for who, m in sorted(self.stats.items()):

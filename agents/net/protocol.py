@@ -57,9 +57,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import os
 import resource
-import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -72,6 +70,7 @@ from estimation.errors import MessageError
 from transport.codec import MIN_ID, MONITOR_ID, PLANT_ID, Message, Schema, decode, encode_fields
 from transport.keys import Keys, ParsedKey
 from transport.zenoh_bus import POLLED_CAPACITY, Bus
+from transport.zenoh_session import thread_counts
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -155,24 +154,6 @@ def cpu_s() -> float:
     return round(usage.ru_utime + usage.ru_stime, 3)
 
 
-def threads() -> dict[str, int]:
-    """Threads of this process now: ``threads`` (Python's and Zenoh's; from ``/proc/self/task``,
-    else Python's alone) and ``zenoh_io_threads``, those of Zenoh's ``rx``, ``tx``, ``net`` and
-    ``acc`` runtimes (0 when they hand over to ``app``: ``transport.zenoh_session.one_zenoh_thread``)."""
-    try:
-        tasks = os.listdir("/proc/self/task")
-    except OSError:
-        return {"threads": threading.active_count()}
-    io = 0
-    for t in tasks:
-        try:
-            with open(f"/proc/self/task/{t}/comm") as f:
-                io += f.read().startswith(("rx-", "tx-", "net-", "acc-"))
-        except OSError:  # the thread ended meanwhile
-            pass
-    return {"threads": len(tasks), "zenoh_io_threads": io}
-
-
 def uss_mb() -> float:
     """Unique set size of this process now (MB): its private pages (``Private_Clean`` +
     ``Private_Dirty`` of ``/proc/self/smaps_rollup``), what it costs beyond the shared
@@ -186,6 +167,17 @@ def uss_mb() -> float:
         return total / 1024.0
     except (OSError, ValueError):
         return float("nan")
+
+
+def process_figures() -> dict[str, float]:
+    """This process's figures for ``summary.json`` (``processes``): peak RSS, CPU seconds, its
+    threads (:func:`transport.zenoh_session.thread_counts`) and USS where the system gives it
+    (the codec carries finite numbers only)."""
+    figs: dict[str, float] = {"maxrss_mb": maxrss_mb(), "cpu_s": cpu_s(), **thread_counts()}
+    uss = uss_mb()
+    if math.isfinite(uss):
+        figs["uss_mb"] = uss
+    return figs
 
 
 def who_name(sender: int | None) -> str:
@@ -464,10 +456,7 @@ class Role:
 
     def send_stats(self, sender: int, links: np.ndarray | None = None, **meta: Any) -> None:
         links = np.zeros((0, 6)) if links is None else links
-        meta = {"cmd": "stats", "maxrss_mb": maxrss_mb(), "bridge_dropped": int(self.bus.stats.dropped_full),
-                "batches": self.batches, "cpu_s": cpu_s(), **threads(), **meta}
-        uss = uss_mb()
-        if math.isfinite(uss):  # not on every system (the codec carries finite numbers only)
-            meta["uss_mb"] = uss
+        meta = {"cmd": "stats", **process_figures(), "bridge_dropped": int(self.bus.stats.dropped_full),
+                "batches": self.batches, **meta}
         self.bus.publish(self.keys.ctl("stats", sender),
                          _msg("ctl", sender, 0, {"links": links, "rejected": self.rejects.as_array()}, meta=meta))

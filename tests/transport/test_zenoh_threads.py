@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from transport.zenoh_session import HANDED_OVER
+
 ROOT = Path(__file__).resolve().parents[2]
 
 # two peers in one process exchange 20 messages, then the names of the process's threads
@@ -49,7 +51,7 @@ def _run(mode: str, env_value: str | None) -> dict:
 
 
 def _zenoh_threads(names: list[str]) -> set[str]:
-    return {n.rpartition("-")[0] for n in names if n.rpartition("-")[0] in {"app", "acc", "tx", "rx", "net"}}
+    return {n.rpartition("-")[0] for n in names if n.rpartition("-")[0] in {"app", *HANDED_OVER}}
 
 
 pytestmark = pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="thread names are read from /proc (Linux)")
