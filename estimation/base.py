@@ -52,6 +52,15 @@ class Received(NamedTuple):
 Inbox = Mapping[int, Received]
 
 
+def held(inbox: Inbox, kk: int, max_age: int) -> list[np.ndarray]:
+    """The values that hold over the step from round ``kk`` to ``kk + 1``: messages stamped
+    ``kk - max_age`` to ``kk``. In round ``k`` after ``k - 1`` that is every message not older
+    than ``k - 1 - max_age`` (the inbox holds nothing newer than ``k - 1``); over the steps
+    of skipped rounds it leaves out a message stamped after the step, whose estimate is of
+    a later time than the one being integrated."""
+    return [r.value for r in inbox.values() if kk - max_age <= r.stamp <= kk]
+
+
 @runtime_checkable
 class Estimator(Protocol):
     """Protocol of a per-agent estimator (see the module docstring)."""

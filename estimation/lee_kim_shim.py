@@ -27,7 +27,14 @@ evaluated at ``t_{k-1}`` and the neighbours' estimates stamped ``k-1`` are held;
 linear part (``A`` and the self-coupling ``-kappa gamma d_i I``, ``d_i`` = number of
 neighbour messages used this round) is integrated exactly (matrix exponential, zero-order
 hold). Plain forward Euler is unstable at ``dt = 1e-2`` for the three-inertia plant
-(its 20 rad/s mode); this scheme is stable there.
+(its 20 rad/s mode); this scheme is stable there. Rounds skipped between two calls
+(a realtime agent that fell behind, or was cut off, runs only the newest measurement) are
+integrated the same way, with ``y_i`` only over the first step: a skipped round carries no
+measurement, so the partial observer predicts open loop over the rest of the gap rather
+than hold a stale ``y_i`` there. Each step of a gap uses the neighbours' estimates stamped
+up to that step (:func:`estimation.base.held`), never one stamped after it: an estimate of
+``x`` at the end of a 3 s gap, coupled in over the whole gap, pulled ``x_i`` as far off
+as holding ``y_i`` did (an agent cut off for 3 s came back 0.3 to 0.6 off, against 0.05).
 
 Gains ``L_i`` are placed by :func:`shifted_poles`: every complex pair of
 ``W_i A V_i`` keeps its frequency and gets real part ``real_part``; real eigenvalues are
@@ -42,7 +49,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .base import EstimatePayload, Inbox
+from .base import EstimatePayload, Inbox, held
 from .batching import Batch, Batchable
 from .errors import DesignError
 from .graphs import algebraic_connectivity
@@ -356,10 +363,9 @@ class LeeKimShim(Batchable, EstimatePayload):
         The returned array is read-only and never modified afterwards.
         """
         if self._k is not None:
-            oldest = k - 1 - self.max_age
-            nb = [r.value for r in inbox.values() if r.stamp >= oldest]
             for kk in range(self._k, k):
-                self._advance(kk, nb)
+                self._advance(kk, held(inbox, kk, self.max_age))
+                self._y = None  # a skipped round carries no measurement: the rest of a gap predicts
         self._k = k
         self._y = None if measurement is None else np.asarray(measurement, dtype=float)
         out = self._s[: self.n]

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .base import Inbox
+from .base import Inbox, held
 from .batching import Batch
 
 
@@ -147,22 +147,23 @@ class LKSBatch(Batch):
     def step(self, k: int, measurements: Sequence[np.ndarray | None], inboxes: Sequence[Inbox]) -> list[np.ndarray]:
         self._pull_closed_y()
         if self._k is not None:
-            oldest = k - 1 - self.max_age
             zero = np.zeros(self.n)
-            degs, totals = [], []
-            for inbox in inboxes:  # the per-agent sum, in the per-agent order
-                nb = [r.value for r in inbox.values() if r.stamp >= oldest]
-                total = zero
-                if nb:
-                    total = nb[0]
-                    for val in nb[1:]:
-                        total = total + val
-                degs.append(len(nb))
-                totals.append(total)
-            M, H, G = self._matrices(tuple(degs), tuple(y is not None for y in self._y))
+            seen = tuple(y is not None for y in self._y)
             ys = [y for y in self._y if y is not None]
-            for kk in range(self._k, k):
+            for kk in range(self._k, k):  # as LeeKimShim.step: per step what holds over it
+                degs, totals = [], []
+                for inbox in inboxes:  # the per-agent sum, in the per-agent order
+                    nb = held(inbox, kk, self.max_age)
+                    total = zero
+                    if nb:
+                        total = nb[0]
+                        for val in nb[1:]:
+                            total = total + val
+                    degs.append(len(nb))
+                    totals.append(total)
+                M, H, G = self._matrices(tuple(degs), seen)
                 v = np.concatenate([self._S, *totals, self._u(kk * self.dt), *ys])
+                seen, ys = (False,) * len(seen), []  # a skipped round carries no measurement
                 self._S = stacked_round(self._S, v, M, H, G, nx=self._nx, mode=self._mode)
                 self._S.flags.writeable = False
         self._k = k

@@ -118,3 +118,35 @@ def test_closed_step_and_sync_match_the_per_agent_steps() -> None:
         inbox = {j: Received(j, 59, last[j]) for j in nbrs[i]}
         np.testing.assert_allclose(a.step(60, y[exp.agent_rows[i]], inbox), b.step(60, y[exp.agent_rows[i]], inbox),
                                    rtol=0, atol=1e-12)
+
+
+def test_a_batch_over_skipped_rounds_equals_the_per_agent_steps() -> None:
+    # a packed realtime process that fell behind steps its batch from round 40 to 75 in one
+    # call: as each member's own step, the measurement of round 40 over the first step only
+    # and each in-neighbour's estimate over the steps from its stamp on (70: the last five
+    # steps; 38: the first step only, max_age 3)
+    from agents.plant import PlantRole
+    from estimation.base import Received
+
+    exp, _ = load_experiment(SCEN / "lee_kim_shim.toml", ("run.duration=1", "expect=[]"), None)
+    per = [exp.make_estimator(i) for i in range(exp.N)]
+    ests = [exp.make_estimator(i) for i in range(exp.N)]
+    nbrs = [list(exp.in_neighbours(i)) for i in range(exp.N)]
+    g = type(ests[0]).batch(ests, in_neighbours=nbrs, agents=list(range(exp.N)), rows=exp.agent_rows)
+    plant = PlantRole(exp)
+    last: list = []
+    for k in range(41):
+        y = plant.measure(k)
+        inbox = [{j: Received(j, k - 1, last[j]) for j in nb} if last else {} for nb in nbrs]
+        last = [e.step(k, y[exp.agent_rows[i]], inbox[i]) for i, e in enumerate(per)]
+        got = g.step(k, [y[r] for r in exp.agent_rows], inbox)
+        np.testing.assert_allclose(np.array(got), np.array(last), rtol=0, atol=REL * np.max(np.abs(last)))
+        plant.advance(k)
+    for k in range(41, 75):
+        plant.advance(k)
+    y = plant.measure(75)
+    inbox = [{j: Received(j, 70 if j % 2 else 38, last[j] + 0.1 * (j + 1)) for j in nb} for nb in nbrs]
+    want = np.array([e.step(75, y[exp.agent_rows[i]], inbox[i]) for i, e in enumerate(per)])
+    got = np.array(g.step(75, [y[r] for r in exp.agent_rows], inbox))
+    np.testing.assert_allclose(got, want, rtol=0, atol=REL * np.max(np.abs(want)))
+    assert np.abs(want - np.array(last)).max() > 1e-3  # the gap moved them

@@ -15,8 +15,14 @@ router at ``tcp/10.A.B.1:7447``, started with ``ip netns exec HOST rse ...``.
 As in the kill/restart test (tests/agents/test_run_processes.py) the bounds are checked
 before the fault (0.01 at t = 10) and after healing (0.25, 6 s after), not during it:
 cutting agents off a team under attack raises the others' errors for a while (the
-attacked agent 1 reached 0.237 to 0.246 with agent 3 cut and 0.28 to 0.30 with agents 4
-and 5 cut, against 0.2165 without a fault); the test prints those peaks.
+attacked agent 1 reached 0.237 to 0.246 with agent 3 cut and 0.284 to 0.293 with agents 4
+and 5 cut, against 0.2165 without a fault); the test prints those peaks. An agent back
+from the cut steps once over the rounds it missed: open loop, each step coupling in only
+the estimates stamped up to it (estimation/lee_kim_shim.py). Before, it held its last
+measurement and coupled in its neighbours' fresh estimates over the whole 3.4 s gap, came
+back up to 0.6 off, and agent 1's peak and its error over [22, 24] depended on which
+message came first (peaks 0.28 to 0.43; over the window 0.217 to 0.254, once over the
+bound).
 
 Accuracy in realtime needs a machine that keeps the 100 Hz rate: a measurement or an
 estimate a process cannot take in time is dropped for it alone, so on a loaded machine
@@ -69,7 +75,8 @@ BOUND_T10, BOUND_ATTACK = 0.01, 0.25  # the scenario's [[expect]] bounds
 # per agent over [22, 24]: about ten times what a realtime run reaches, the scenario's bound
 # where that is looser. rse simulate gives 0.216, 5.7e-6, 4.8e-9, 0.0721, 0.144; realtime
 # runs with a fault measured 0.217 to 0.224 (agent 1), 0.0016 to 0.0084, 0.0029 to 0.021,
-# 0.078 to 0.092 and 0.153 to 0.173 (agents 2 to 5, on a loaded machine)
+# 0.078 to 0.092 and 0.153 to 0.173 (agents 2 to 5, on a loaded machine); with the gap
+# stepped open loop, 12 runs on a quiet machine: agent 1 at 0.216 to 0.219
 BOUND_END = {1: BOUND_ATTACK, 2: 0.05, 3: 0.1, 4: BOUND_ATTACK, 5: BOUND_ATTACK}
 # the accuracy checks need every agent to have reported this share of the rounds before the
 # fault and over the window. The attacked agent 1's error over [22, 24] grows steadily with
