@@ -16,6 +16,7 @@ import pytest
 
 from agents.api import load_experiment
 from agents.simulate import batch_groups, closed_team, make_channel, make_nodes, simulate
+from estimation.base import Received
 
 SCEN = Path(__file__).resolve().parents[2] / "scenarios"
 REL = 1e-12
@@ -87,18 +88,23 @@ def test_batched_equals_per_agent(name: str, overrides: tuple[str, ...], agree: 
     assert eb.shape[1] == 1 or np.ptp(eb, axis=1).max() > 0
 
 
-def test_closed_step_and_sync_match_the_per_agent_steps() -> None:
-    # step_closed is the per-agent round with every in-neighbour's previous payload in the
-    # inbox; sync writes the stacked state back (estimate and partial estimate)
+def _lks_team() -> tuple:
+    """``lee_kim_shim.toml``'s five estimators twice (``per``, stepped one by one, and
+    ``ests``, the members of the batch ``g``), their in-neighbours and the plant."""
     from agents.plant import PlantRole
-    from estimation.base import Received
 
     exp, _ = load_experiment(SCEN / "lee_kim_shim.toml", ("run.duration=1", "expect=[]"), None)
     per = [exp.make_estimator(i) for i in range(exp.N)]
     ests = [exp.make_estimator(i) for i in range(exp.N)]
     nbrs = [list(exp.in_neighbours(i)) for i in range(exp.N)]
     g = type(ests[0]).batch(ests, in_neighbours=nbrs, agents=list(range(exp.N)), rows=exp.agent_rows)
-    plant = PlantRole(exp)
+    return exp, per, ests, nbrs, g, PlantRole(exp)
+
+
+def test_closed_step_and_sync_match_the_per_agent_steps() -> None:
+    # step_closed is the per-agent round with every in-neighbour's previous payload in the
+    # inbox; sync writes the stacked state back (estimate and partial estimate)
+    exp, per, ests, nbrs, g, plant = _lks_team()
     last = None
     for k in range(60):
         y = plant.measure(k)
@@ -124,16 +130,8 @@ def test_a_batch_over_skipped_rounds_equals_the_per_agent_steps() -> None:
     # a packed realtime process that fell behind steps its batch from round 40 to 75 in one
     # call: as each member's own step, the measurement of round 40 over the first step only
     # and each in-neighbour's estimate over the steps from its stamp on (70: the last five
-    # steps; 38: the first step only, max_age 3)
-    from agents.plant import PlantRole
-    from estimation.base import Received
-
-    exp, _ = load_experiment(SCEN / "lee_kim_shim.toml", ("run.duration=1", "expect=[]"), None)
-    per = [exp.make_estimator(i) for i in range(exp.N)]
-    ests = [exp.make_estimator(i) for i in range(exp.N)]
-    nbrs = [list(exp.in_neighbours(i)) for i in range(exp.N)]
-    g = type(ests[0]).batch(ests, in_neighbours=nbrs, agents=list(range(exp.N)), rows=exp.agent_rows)
-    plant = PlantRole(exp)
+    # steps; 38: the first two, max_age 3)
+    exp, per, _, nbrs, g, plant = _lks_team()
     last: list = []
     for k in range(41):
         y = plant.measure(k)
