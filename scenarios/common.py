@@ -76,6 +76,27 @@ class ByzantineSpec:
     agent: int = 0
 
 
+@dataclass(frozen=True)
+class ThreatModel:
+    """What an algorithm is proven to tolerate: a plugin's optional ``THREAT_MODEL``.
+
+    ``rse redteam`` searches inside it (and one step outside with ``--beyond``):
+
+    * ``sensors``: the ``[estimator]`` key whose value is how many sensor banks may be
+      attacked (``None``: the algorithm trusts its sensors);
+    * ``agents``: the ``[estimator]`` key whose value is how many Byzantine agents any
+      neighbourhood may hold (``None``: every agent is regular);
+    * ``strategies``: the Byzantine strategies the proof covers (names of
+      ``transport.byzantine``; ``None``: all of them).
+
+    Erasures up to the scenario's ``network.channel.drop_p`` are searched for every algorithm.
+    """
+
+    sensors: str | None = None
+    agents: str | None = None
+    strategies: tuple[str, ...] | None = None
+
+
 @dataclass
 class Condition:
     """One paper condition as reported by ``rse check``."""

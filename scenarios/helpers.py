@@ -12,6 +12,7 @@ builder, which are still being imported when the plugins are loaded.
 * :class:`Condition`: one line of ``rse check``; :func:`checked_design`: the design, or its
   failure as a condition;
 * :class:`PlantModel`: what a named plant (``PLANTS``) builds;
+* :class:`ThreatModel`: what the algorithm tolerates (``THREAT_MODEL``, for ``rse redteam``);
 * :class:`Strict`, :data:`Init`, :class:`UniformInit`, :class:`ZeroInit`, :data:`Matrix`,
   :data:`Vector`: building blocks of an ``[estimator]`` section.
 """
@@ -31,6 +32,7 @@ from .common import (
     Condition,
     PlantModel,
     PlantStepper,
+    ThreatModel,
     checked_design,
     rng_for,
 )
@@ -38,7 +40,7 @@ from .types import Init, Matrix, Strict, UniformInit, ValueInit, Vector, ZeroIni
 
 __all__ = [
     "STREAM_AGENT_X0", "STREAM_ESTIMATOR", "STREAM_PLANT_NOISE", "Condition", "Init", "Matrix", "PlantModel",
-    "PlantStepper", "Strict", "UniformInit", "ValueInit", "Vector", "ZeroInit", "checked_design", "explicit_AB",
+    "PlantStepper", "Strict", "ThreatModel", "UniformInit", "ValueInit", "Vector", "ZeroInit", "checked_design", "explicit_AB",
     "init_vector", "matrix", "rng_for",
 ]
 

@@ -111,6 +111,26 @@ def test_scenarios_hold_their_bounds_and_comparisons_fail_them(installed, tmp_pa
         assert any(e["ok"] is False for e in exps)
 
 
+@pytest.mark.needs("optuna", "rse redteam")
+def test_redteam_searches_the_plugin_within_its_declared_threat_model(installed, tmp_path):
+    """The plugin declares its threat model (``THREAT_MODEL``): ``rse redteam`` searches a
+    third-party algorithm within it without ``--beyond``, and the worst attack found stays
+    inside the bound the scenario's own ``[[expect]]`` names (the W-MSR example: F = 1)."""
+    pkg, env = installed
+    sc = _scenarios(pkg, "scenarios")[0]
+    out = tmp_path / "redteam"
+    res = rse("redteam", str(sc), "--budget", "30", "--jobs", "1", "--out", str(out), env=env, timeout=600)
+    assert res.returncode == 0, res.stdout + res.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["evaluations"] == 30 and summary["failed_evaluations"] == 0
+    assert summary["space"]["beyond"] is False
+    est = tomllib.loads(sc.read_text())["estimator"]
+    assert summary["space"]["threat_model"]["f"] == est["f"] == summary["space"]["agents"]["count"]
+    bound = min(e["max"] for e in tomllib.loads(sc.read_text())["expect"] if "max" in e)
+    assert 0.0 <= summary["worst"]["value"] <= bound, summary["worst"]
+    assert summary["worst"]["reproduced"] is True
+
+
 TRAJECTORIES = textwrap.dedent("""
     import sys
     import numpy as np
@@ -182,6 +202,25 @@ def _fake_distribution(site: Path, module: str, body: str | None) -> None:
         ESTIMATOR = E
         design = make_estimator = conditions = design_json = lambda *a, **k: None
      """), "algorithm 'lfre' is already provided by scenarios.plugins.mitra"),
+    ("bad_threat_model", textwrap.dedent("""
+        from typing import Literal
+        from scenarios.helpers import Strict, ThreatModel
+        class E(Strict):
+            algorithm: Literal["algo"]
+            f: int = 1
+        ESTIMATOR = E
+        THREAT_MODEL = ThreatModel(agents="F")
+        design = make_estimator = conditions = design_json = lambda *a, **k: None
+     """), "THREAT_MODEL.agents = 'F' is not a field of its ESTIMATOR"),
+    ("unknown_strategy", textwrap.dedent("""
+        from typing import Literal
+        from scenarios.helpers import Strict, ThreatModel
+        class E(Strict):
+            algorithm: Literal["algo"]
+        ESTIMATOR = E
+        THREAT_MODEL = ThreatModel(strategies=("constant", "bribery"))
+        design = make_estimator = conditions = design_json = lambda *a, **k: None
+     """), "THREAT_MODEL.strategies: unknown strategy 'bribery'"),
 ])
 def test_a_broken_entry_point_is_one_line_naming_the_package(tmp_path, module, body, message):
     site = tmp_path / "site"

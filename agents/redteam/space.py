@@ -7,11 +7,13 @@ file, so that the worst candidate is simply the scenario with those overrides fr
      "agent": [{"agent": 5, "kind": "constant", "start": 0.0, "value": 3.0}],
      "channel": {"drop_p": 0.3, "seed": 17, "losses": [{"link": [1, 2], "start": 40, "length": 10}]}}
 
-The threat model per algorithm (docs/redteam.md): Lee-Kim-Shim tolerates ``estimator.q``
-attacked sensor banks, van der Horst et al. ``estimator.M``, Mao-Tabuada ``estimator.s``;
-Mitra et al. ``estimator.f`` Byzantine agents in any neighbourhood and erasures up to the
-scenario's ``network.channel.drop_p``. A ``[redteam]`` table narrows or widens the
-derived space; a budget above the threat model is an error without ``beyond``.
+The threat model is what the algorithm's plugin declares (``THREAT_MODEL``, a
+:class:`scenarios.helpers.ThreatModel`; docs/redteam.md): Lee-Kim-Shim tolerates
+``estimator.q`` attacked sensor banks, van der Horst et al. ``estimator.M``, Mao-Tabuada
+``estimator.s``; Mitra et al. ``estimator.f`` Byzantine agents in any neighbourhood; every
+algorithm erasures up to the scenario's ``network.channel.drop_p``. A third-party plugin
+declares its own. A ``[redteam]`` table narrows or widens the derived space; a budget above
+the threat model is an error without ``beyond``.
 """
 
 from __future__ import annotations
@@ -31,8 +33,6 @@ __all__ = ["MetricSpec", "Space", "derive", "METRICS", "SENSOR_KINDS", "AGENT_KI
 METRICS = ("error_2", "error_inf", "relative_error_2", "error_ratio")
 SENSOR_KINDS = ("constant", "ramp", "sine", "random", "trajectory")
 AGENT_KINDS = ("constant", "huge", "omission", "equivocation", "false_stamp", "replay", "crash", "cancellation")
-#: algorithm -> (estimator key of its sensor-attack budget, of its Byzantine-agent budget)
-BUDGETS = {"lee_kim_shim": ("q", None), "median_bank": ("M", None), "mao_tabuada": ("s", None), "lfre": (None, "f")}
 
 
 @dataclass(frozen=True)
@@ -260,6 +260,7 @@ def _modal_band(exp: Any) -> tuple[float, float]:
 def derive(exp: Any, *, beyond: bool = False, metric: str | None = None, over: Any = None, block: str | None = None
            ) -> tuple[Space, MetricSpec]:
     """The space and the metric for a built experiment (``[redteam]`` applied, validated)."""
+    from scenarios import plugins
     from scenarios.schema import RedteamSection
 
     sc = exp.scenario
@@ -267,7 +268,8 @@ def derive(exp: Any, *, beyond: bool = False, metric: str | None = None, over: A
     rt = sc.redteam or RedteamSection()
     est = sc.estimator
     alg = est.algorithm
-    qkey, fkey = BUDGETS.get(alg, (None, None))
+    tm = plugins.threat_model(alg)
+    qkey, fkey = tm.sensors, tm.agents
     q = int(getattr(est, qkey)) if qkey else None
     f = int(getattr(est, fkey)) if fkey else None
     p = float(sc.network.channel.drop_p)
@@ -319,7 +321,12 @@ def derive(exp: Any, *, beyond: bool = False, metric: str | None = None, over: A
         raise _bad(f"redteam.candidates: no agent {bad[0]}; agents are {exp.agent_ids[0]}..{exp.agent_ids[-1]}", src)
     if sp.agents > len(sp.candidates):
         raise _bad(f"redteam.agents = {sp.agents} exceeds the {len(sp.candidates)} candidate agent(s)", src)
-    sp.strategies = list(rt.strategies) if rt.strategies is not None else list(AGENT_KINDS)
+    allowed = list(tm.strategies) if tm.strategies is not None else list(AGENT_KINDS)
+    sp.strategies = list(rt.strategies) if rt.strategies is not None else allowed
+    outside = [k for k in sp.strategies if k not in allowed]
+    if outside and sp.agents and not beyond:
+        raise _bad(f"redteam.strategies: {outside[0]!r} is outside {alg}'s threat model (its strategies: "
+                   f"{', '.join(allowed)}); pass --beyond to search it", src)
     sp.value = float(rt.value)
 
     # channel

@@ -22,6 +22,10 @@ A plugin module defines:
 * ``design_json(exp) -> dict``: the design as written to ``design.json``.
 * ``graph_conditions(exp) -> list[Condition]``: optional; replaces the generic
   connectivity lines of ``rse check`` (e.g. for an algorithm made for directed graphs).
+* ``THREAT_MODEL``: optional :class:`scenarios.helpers.ThreatModel`, what the algorithm
+  tolerates (the ``[estimator]`` keys of its sensor and Byzantine-agent budgets, the
+  strategies); ``rse redteam`` searches inside it. Without it the algorithm declares no
+  sensor or Byzantine budget.
 
 A plugin builds on :mod:`scenarios.helpers` (import it at module level; the schema and the
 builder are still being imported when plugins load). An entry point that cannot be loaded,
@@ -116,6 +120,7 @@ def _check(mod: Any, where: str, algorithms: dict[str, str], plants: dict[str, s
     if name in algorithms:
         raise PluginError(f"{where}: algorithm {name!r} is already provided by {algorithms[name]}")
     algorithms[name] = where
+    _check_threat_model(mod, where, est, contract)
     named = getattr(mod, "PLANTS", {})
     if not isinstance(named, dict):
         raise PluginError(f"{where}: PLANTS must be a dict {{model name: (default params, build)}} {contract}")
@@ -125,6 +130,32 @@ def _check(mod: Any, where: str, algorithms: dict[str, str], plants: dict[str, s
         if pname in plants:
             raise PluginError(f"{where}: plant model {pname!r} is already provided by {plants[pname]}")
         plants[pname] = where
+
+
+def _check_threat_model(mod: Any, where: str, est: Any, contract: str) -> None:
+    from transport.byzantine import KINDS
+
+    from ..common import ThreatModel
+
+    tm = getattr(mod, "THREAT_MODEL", None)
+    if tm is None:
+        return
+    if not isinstance(tm, ThreatModel):
+        raise PluginError(f"{where}: THREAT_MODEL must be a scenarios.helpers.ThreatModel {contract}")
+    for what, key in (("sensors", tm.sensors), ("agents", tm.agents)):
+        if key is not None and key not in est.model_fields:
+            raise PluginError(f"{where}: THREAT_MODEL.{what} = {key!r} is not a field of its ESTIMATOR {contract}")
+    unknown = [s for s in tm.strategies or () if s not in KINDS]
+    if unknown:
+        raise PluginError(f"{where}: THREAT_MODEL.strategies: unknown strategy {unknown[0]!r}; expected some of "
+                          f"{', '.join(KINDS)}")
+
+
+def threat_model(name: str) -> Any:
+    """The :class:`~scenarios.helpers.ThreatModel` of algorithm ``name`` (empty where its plugin declares none)."""
+    from ..common import ThreatModel
+
+    return getattr(algorithm(name), "THREAT_MODEL", None) or ThreatModel()
 
 
 def estimator_sections() -> tuple[type, ...]:

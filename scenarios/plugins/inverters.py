@@ -57,7 +57,7 @@ from estimation.median_bank import (
 )
 from estimation.median_solver import theorem1_bound
 
-from ..common import STREAM_AGENT_X0, Condition, rng_for
+from ..common import STREAM_AGENT_X0, Condition, ThreatModel, rng_for
 from ..helpers import init_vector
 from ..types import Init, Strict
 from .inverters_plant import ERROR_BLOCK as ERROR_BLOCK  # the error block of the runs (tests and scripts read it here)
@@ -102,6 +102,7 @@ class MedianBankEstimator(Strict):
 
 
 ESTIMATOR = MedianBankEstimator
+THREAT_MODEL = ThreatModel(sensors="M")  # at most M attacked sensors
 
 
 

@@ -15,7 +15,7 @@ from estimation.lti import dense
 from estimation.median_solver import theorem1_bound
 from estimation.observability import redundancy_violations
 
-from ..common import STREAM_AGENT_X0, Condition, rng_for
+from ..common import STREAM_AGENT_X0, Condition, ThreatModel, rng_for
 from ..helpers import init_vector
 from ..types import Init, Strict, UniformInit
 
@@ -40,6 +40,7 @@ class LeeKimShimEstimator(Strict):
 
 
 ESTIMATOR = LeeKimShimEstimator
+THREAT_MODEL = ThreatModel(sensors="q")  # Theorem 1: at most q attacked sensor banks
 
 
 def _agent_C(exp: "Experiment") -> list[np.ndarray]:

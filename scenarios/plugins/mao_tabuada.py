@@ -42,7 +42,7 @@ from estimation.mao_tabuada import (
 )
 from estimation.sparse_detectability import design_compression, sparse_detectability
 
-from ..common import Condition
+from ..common import Condition, ThreatModel
 from ..types import Matrix, Strict
 
 if TYPE_CHECKING:
@@ -105,6 +105,7 @@ class MaoTabuadaSection(Strict):
 
 
 ESTIMATOR = MaoTabuadaSection
+THREAT_MODEL = ThreatModel(sensors="s")  # at most s attacked nodes (s-sparse attacks)
 
 
 class MaoTabuadaAgent(MaoTabuadaEstimator, Diagnostics):

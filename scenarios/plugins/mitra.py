@@ -16,7 +16,7 @@ from estimation.mss import effective_erasure_probability, max_erasure_probabilit
 from estimation.patrols import Patrol
 from estimation.robustness import strong_robustness
 
-from ..common import STREAM_MAP, Condition, PlantModel, checked_design, rng_for
+from ..common import STREAM_MAP, Condition, PlantModel, ThreatModel, checked_design, rng_for
 from ..types import Strict
 
 if TYPE_CHECKING:
@@ -40,6 +40,7 @@ class MitraEstimator(Strict):
 
 
 ESTIMATOR = MitraEstimator
+THREAT_MODEL = ThreatModel(agents="f")  # Theorem 2: f-local Byzantine agents, erasures up to drop_p
 
 
 def _cell_plant(sc: "Scenario", source: str, defaults: dict) -> PlantModel:

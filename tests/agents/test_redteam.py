@@ -59,6 +59,20 @@ def test_threat_model_is_enforced(path, sets, beyond, match):
         derive(api.load(path, set=sets), beyond=beyond)
 
 
+def test_a_declared_strategy_list_limits_the_search(monkeypatch):
+    """A plugin's ``THREAT_MODEL.strategies`` is the default strategy list; naming another
+    strategy in ``[redteam]`` is outside the threat model unless ``--beyond``."""
+    from scenarios import plugins
+    from scenarios.helpers import ThreatModel
+
+    monkeypatch.setattr(plugins.algorithm("lfre"), "THREAT_MODEL", ThreatModel(agents="f", strategies=("constant", "huge")))
+    sp, _ = derive(api.load(MITRA))
+    assert (sp.agents, sp.strategies) == (1, ["constant", "huge"])
+    with pytest.raises(ScenarioError, match="'cancellation' is outside lfre's threat model"):
+        derive(api.load(MITRA, set=['redteam.strategies=["constant", "cancellation"]']))
+    assert derive(api.load(MITRA, set=['redteam.strategies=["cancellation"]']), beyond=True)[0].strategies == ["cancellation"]
+
+
 def test_beyond_allows_one_step_outside():
     sp, _ = derive(api.load(LKS, set=["redteam.sensors=2", "redteam.amplitude=10"]), beyond=True)
     assert sp.sensors == 2 and sp.amplitude == 10

@@ -1,6 +1,6 @@
 """The rse plugin module of W-MSR (found through the ``rse.algorithms`` entry point).
 
-The module contract of ``scenarios.plugins``: ``ESTIMATOR`` (the ``[estimator]`` section),
+The module contract of ``scenarios.plugins``: ``ESTIMATOR`` (the ``[estimator]`` section), ``THREAT_MODEL`` (optional),
 ``design``, ``make_estimator``, ``conditions`` and ``design_json``. Everything it needs from
 rse comes from ``scenarios.helpers`` (imported at module level) and ``estimation``.
 """
@@ -15,7 +15,17 @@ from pydantic import Field
 from estimation import graphs
 from estimation.errors import DesignError, ScenarioError
 from estimation.robustness import is_f_local, strong_robustness
-from scenarios.helpers import STREAM_AGENT_X0, Condition, Init, Strict, UniformInit, checked_design, init_vector, rng_for
+from scenarios.helpers import (
+    STREAM_AGENT_X0,
+    Condition,
+    Init,
+    Strict,
+    ThreatModel,
+    UniformInit,
+    checked_design,
+    init_vector,
+    rng_for,
+)
 
 from . import wmsr
 
@@ -38,6 +48,10 @@ class WmsrEstimator(Strict):
 
 
 ESTIMATOR = WmsrEstimator
+#: what W-MSR tolerates (LeBlanc et al., Theorem 2 with the observers): F Byzantine agents in any
+#: in-neighbourhood (F-local, ``estimator.f``), whatever values they send; ``rse redteam`` searches
+#: within it without --beyond
+THREAT_MODEL = ThreatModel(agents="f")
 
 
 def _agent_C(exp: "Experiment") -> list[np.ndarray]:
