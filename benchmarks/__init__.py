@@ -10,7 +10,7 @@ Four sections, each a module:
     Peak RSS of a fresh simulator process at the same team sizes, and per agent.
 ``run`` (:mod:`benchmarks.run_bench`)
     ``rse run`` lockstep rounds/s at 2 to 32 agent processes next to the bare Zenoh
-    skeleton's (:mod:`benchmarks.zenoh_skeleton`), and the peak RSS per agent process.
+    skeleton's (:mod:`agents.net.skeleton`), and the peak RSS per agent process.
 ``sweep`` (:mod:`benchmarks.sweep_bench`)
     Runs/s of ``rse sweep`` on a small grid.
 

@@ -21,7 +21,7 @@ no Byzantine agent (the scenario's agent 5 does not exist below 8 agents; the sa
 shape at every size) and no ``[expect]`` bounds. The run is ``rse run``'s
 :func:`agents.net.launcher.launch` as ``rse bench run`` calls it (lockstep, deadline 2 s,
 no Rerun output), then the bare Zenoh skeleton
-(:func:`benchmarks.zenoh_skeleton.run_skeleton`) with the same processes, message sizes and
+(:func:`agents.net.skeleton.run_skeleton`) with the same processes, message sizes and
 number of rounds. Each is one run (the plant times its rounds); the peak RSS of every
 agent process is read from the run's summary.
 """
@@ -92,7 +92,7 @@ def measure_run(processes: int, rounds: int, *, deadline: float = 2.0, skeleton:
            "plant_rss_mb": procs.get("plant", {}).get("maxrss_mb"), "monitor_rss_mb": procs.get("monitor", {}).get("maxrss_mb"),
            "deadline_misses": perf.get("deadline_misses"), "skeleton_rounds_per_s": None}
     if skeleton:
-        from .zenoh_skeleton import run_skeleton, sizes_for
+        from agents.net.skeleton import run_skeleton, sizes_for
 
         try:
             sk = run_skeleton(sizes_for(exp), rounds=out["rounds"])

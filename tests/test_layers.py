@@ -11,6 +11,7 @@ of asyncio, zenoh, rerun or msgpack.
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -109,6 +110,17 @@ def test_nothing_outside_the_cli_imports_it():
     g = import_graph()
     users = sorted(f"{a} -> {b}" for a, b in g.edges if layer_of(b) == "agents.cli" and layer_of(a) != "agents.cli")
     assert users == []
+
+
+def test_the_product_imports_no_benchmark_and_edits_no_sys_path():
+    """The installed package does not need the benchmarks (architecture: CLI and runtime never
+    import them), and no module of the project edits ``sys.path`` (only tests may)."""
+    g = import_graph()
+    users = sorted(f"{a} -> {b}" for a, b in g.edges if layer_of(b) == "benchmarks" and layer_of(a) != "benchmarks")
+    assert users == []
+    edits = sorted(name for name, path in project_modules().items()
+                   if re.search(r"sys\.path\.(insert|append|extend)|sys\.path\s*=", path.read_text()))
+    assert edits == []
 
 
 def test_no_import_cycle_among_the_project_modules():

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from agents.api import load_experiment
-from benchmarks.zenoh_skeleton import run_skeleton, sizes_for
+from agents.net.skeleton import run_skeleton, sizes_for
 
 ROOT = Path(__file__).resolve().parents[1]
 

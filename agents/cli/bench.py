@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 import platform
 import statistics
-import sys
 import tempfile
 from pathlib import Path
 
@@ -194,14 +193,8 @@ def _command_started() -> float:
 
 
 def _skeleton():
-    root = str(Path(__file__).resolve().parents[2])  # benchmarks/ lives next to agents/
-    if root not in sys.path:
-        sys.path.insert(0, root)
-    try:
-        from benchmarks.zenoh_skeleton import run_skeleton, sizes_for
-    except ImportError:
-        raise RSEError("the skeleton benchmark (benchmarks/zenoh_skeleton.py) is not available in this "
-                       "installation; run from a source checkout or use --no-skeleton") from None
+    from agents.net.skeleton import run_skeleton, sizes_for
+
     return run_skeleton, sizes_for
 
 

@@ -1,6 +1,7 @@
 """The bare Zenoh lockstep skeleton: ``rse run``'s processes and messages, no estimation.
 
-The yardstick of ``rse bench run``: the same processes (plant, monitor, one per agent,
+The yardstick of ``rse bench run`` (part of the installed package, so the command works
+outside a source checkout; the benchmark suite uses it too): the same processes (plant, monitor, one per agent,
 spawned, one Zenoh peer session each on loopback, the same asyncio bridge on the same
 event loop, :mod:`transport.event_loop`), the same
 keys, the same message pattern per round and the same payload sizes as the runtime's
@@ -23,7 +24,7 @@ The *minimal* skeleton (``run_skeleton(..., minimal=True)``) is the least a lock
 round can send: a clock ticks once per round, each agent publishes one estimate and one
 done once it holds its in-neighbours' previous estimates, no measurement, no monitor.
 
-Usage: ``python -m benchmarks.zenoh_skeleton [N] [ROUNDS]`` (a ring of N agents, n = 6),
+Usage: ``python -m agents.net.skeleton [N] [ROUNDS]`` (a ring of N agents, n = 6),
 or :func:`run_skeleton` with :func:`sizes_for` of a built experiment.
 """
 
