@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .runs import RunResult, _override_strings, check, deferred_signals, ended_by, load, load_experiment, open_run, pin_blas_threads, simulate
+from .threat import beyond_threat_model
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -44,6 +45,7 @@ __all__ = [
     "check",
     "sweep",
     "boundary",
+    "beyond_threat_model",
     "open_run",
     "RunResult",
     "pin_blas_threads",

@@ -4,6 +4,7 @@ Usage::
 
     python -m benchmarks [--quick] [--only simulate,run,memory,sweep] [--json FILE] [--compare OLD.json]
     python -m benchmarks --load NEW.json [--compare OLD.json]     # print saved figures, no run
+    python -m benchmarks --load benchmarks/results.json --markdown docs/benchmarks.md   # the docs page
 
 Run it from a source checkout on a quiet machine (every other process slows the
 figures down; the load average at the start and the end is in the JSON). ``--quick`` is
@@ -233,11 +234,13 @@ def default_json_path(git: dict[str, Any]) -> Path:
               help="A result file of an earlier run: print its value and new / old per figure.")
 @click.option("--load", "load", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Print the figures of a saved result file instead of running (with --compare: compare them).")
+@click.option("--markdown", "markdown", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write the figures as a markdown page (docs/benchmarks.md), from --load's file or this run's.")
 @click.option("--max-agents", type=click.IntRange(min=2), default=None, metavar="N",
               help="Skip the simulator teams and rse run teams larger than N (e.g. 256: no 1024-agent team).")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
 def cli(quick: bool, only: str | None, json_path: Path | None, compare: Path | None, load: Path | None,
-        max_agents: int | None, progress: bool) -> None:
+        markdown: Path | None, max_agents: int | None, progress: bool) -> None:
     """Benchmark the simulator, rse run, memory and rse sweep; print one table and write JSON."""
     try:
         sections = parse_sections(only)
@@ -249,7 +252,9 @@ def cli(quick: bool, only: str | None, json_path: Path | None, compare: Path | N
         if load is not None:
             if quick or only or json_path or max_agents:
                 raise BenchmarkError("--load prints a saved file: it takes no --quick, --only, --json or --max-agents")
-            out.print(table(read_document(load), old))
+            doc = read_document(load)
+            out.print(table(doc, old))
+            _write_markdown(doc, markdown, load)
             return
     except BenchmarkError as exc:
         err.print(f"[red]error:[/red] {exc}", soft_wrap=True)
@@ -276,10 +281,25 @@ def cli(quick: bool, only: str | None, json_path: Path | None, compare: Path | N
         sys.exit(EXIT_FAILED)
     out.print(table(doc, old))
     out.print(f"figures: {path}", soft_wrap=True)
+    _write_markdown(doc, markdown, path)
     for e in errors:
         err.print(f"[red]error:[/red] {e}", soft_wrap=True)
     if errors:
         sys.exit(EXIT_FAILED)
+
+
+def _write_markdown(doc: dict[str, Any], markdown: Path | None, source: Path) -> None:
+    """Write the page of ``doc`` to ``markdown`` (if given); exit status 1 if it cannot be written."""
+    if markdown is None:
+        return
+    from .markdown import write_markdown
+
+    try:
+        write_markdown(doc, markdown, source=str(source), target=str(markdown))
+    except OSError as exc:
+        err.print(f"[red]error:[/red] cannot write {markdown}: {exc.strerror or exc}", soft_wrap=True)
+        sys.exit(EXIT_FAILED)
+    out.print(f"page: {markdown}", soft_wrap=True)
 
 
 def main() -> None:

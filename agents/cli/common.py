@@ -17,13 +17,22 @@ import click
 
 from estimation.errors import EXIT_BAD_INPUT, EXIT_EXPECTATION, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError, describe, exit_status
 
-from ..api import load_experiment
+from ..api import beyond_threat_model, load_experiment
 
 __all__ = [
     "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT", "EXIT_EXPECTATION", "EXIT_INTERRUPTED",
     "handle_errors", "scenario_options", "rerun_options", "dashboard_options", "wait_while_serving",
-    "load_experiment", "secure_files", "sigterm_interrupts",
+    "load_experiment", "secure_files", "sigterm_interrupts", "warn_threat_model",
 ]
+
+
+def warn_threat_model(exp: Any) -> None:
+    """One warning line on stderr when the scenario's attacks exceed its threat model."""
+    line = beyond_threat_model(exp)
+    if line is not None:
+        from ..console import err
+
+        err.print(f"[yellow]warning:[/yellow] {line}", soft_wrap=True)
 
 
 def handle_errors(fn: Callable) -> Callable:

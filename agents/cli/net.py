@@ -27,6 +27,7 @@ from .common import (
     secure_files,
     sigterm_interrupts,
     wait_while_serving,
+    warn_threat_model,
 )
 
 
@@ -138,6 +139,7 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
 
     prestart()  # the children's fork server starts while the experiment is built
     exp, frozen = load_experiment(scenario, overrides, seed)
+    warn_threat_model(exp)
     run_dir = out or default_run_dir(exp.scenario.run.name)
     dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
     from ..console import out as console

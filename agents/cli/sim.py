@@ -11,7 +11,16 @@ import click
 from estimation.errors import EXIT_FAILED, EXIT_OK, ExpectationFailed
 
 from .. import api
-from .common import dashboard_options, handle_errors, load_experiment, rerun_options, scenario_options, sigterm_interrupts, wait_while_serving
+from .common import (
+    dashboard_options,
+    handle_errors,
+    load_experiment,
+    rerun_options,
+    scenario_options,
+    sigterm_interrupts,
+    wait_while_serving,
+    warn_threat_model,
+)
 
 
 @click.command()
@@ -37,6 +46,7 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
 
     sigterm_interrupts()
     exp, frozen = load_experiment(scenario, overrides, seed)
+    warn_threat_model(exp)
     run_dir = out or default_run_dir(exp.scenario.run.name)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "summary.json").unlink(missing_ok=True)  # a new run: not the summary of an earlier one
@@ -98,4 +108,5 @@ def check(scenario: Path, overrides: tuple[str, ...], seed: int | None) -> None:
         ok = ok and c.holds is not False
         table.add_row(mark, c.name, c.detail)
     console.print(table)
+    warn_threat_model(exp)
     sys.exit(EXIT_OK if ok else EXIT_FAILED)
