@@ -65,7 +65,8 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
     Returns when the team has finished; raises :class:`~estimation.errors.RSEError`
     naming the failed process otherwise.
     """
-    from estimation.errors import EXIT_INTERRUPTED, RSEError, ScenarioError
+    from agents.net.exits import EXIT_INTERRUPTED
+    from estimation.errors import RSEError, ScenarioError
 
     from .net.launcher import launch
     from .net.protocol import RunConfig

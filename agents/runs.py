@@ -224,7 +224,7 @@ def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None =
 
 def ended_by(exc: BaseException) -> str:
     """The ``reason`` of ``summary.json`` for a run ended by ``exc``."""
-    from estimation.errors import describe
+    from agents.net.exits import describe
 
     if isinstance(exc, KeyboardInterrupt):
         return f"interrupted ({exc.args[0]})" if exc.args else "interrupted (SIGINT)"

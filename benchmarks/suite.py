@@ -29,7 +29,7 @@ import click
 from rich.console import Console
 
 from agents.api import pin_blas_threads
-from estimation.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED
+from agents.net.exits import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED
 
 from .report import BenchmarkError, Figure, git_info, machine_info, read_document, result_document, table, write_document
 

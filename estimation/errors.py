@@ -24,7 +24,8 @@ Every layer raises these, so a caller can catch by kind. The tree::
                                                  contract (the message names the package)
 
 ``estimation`` owns this module because every other layer may import from
-``estimation`` and ``estimation`` imports from none of them.
+``estimation`` and ``estimation`` imports from none of them. The exit statuses a command
+or a process maps these to live with the processes, in :mod:`agents.net.exits`.
 """
 
 from __future__ import annotations
@@ -87,42 +88,3 @@ class ExpectationFailed(RSEError):
 class PluginError(RSEError):
     """An algorithm plugin (an ``rse.algorithms`` entry point) cannot be loaded or does not
     satisfy the module contract of :mod:`scenarios.plugins`."""
-
-
-# ---------------------------------------------------------------- exit statuses
-# One place for the statuses every command and process of the runtime exits with, and for
-# the mapping from the exceptions above to them (the CLI and the team launcher both use it).
-
-EXIT_OK = 0  #: success
-EXIT_FAILED = 1  #: a condition (``rse check``) or a process / the run failed
-EXIT_BAD_INPUT = 2  #: bad input: usage, a scenario file, an override, a missing file
-EXIT_EXPECTATION = 3  #: the run finished but an ``[[expect]]`` bound failed
-EXIT_INTERRUPTED = 130  #: Ctrl-C / SIGTERM
-
-
-def exit_status(exc: BaseException) -> int:
-    """The exit status for an exception that ends a command or a process.
-
-    :class:`ScenarioError` -> 2, :class:`ExpectationFailed` -> 3, any other
-    :class:`RSEError` or an :class:`OSError` -> 1, an interrupt -> 130; anything else is a
-    bug (1, reported as an internal error by the caller).
-    """
-    if isinstance(exc, ScenarioError):
-        return EXIT_BAD_INPUT
-    if isinstance(exc, ExpectationFailed):
-        return EXIT_EXPECTATION
-    if isinstance(exc, KeyboardInterrupt):
-        return EXIT_INTERRUPTED
-    return EXIT_FAILED
-
-
-def describe(exc: BaseException) -> str:
-    """The one-line message for ``exc`` (an internal error names its type and how to see the
-    traceback)."""
-    if isinstance(exc, RSEError):
-        return str(exc)
-    if isinstance(exc, KeyboardInterrupt):
-        return "interrupted"
-    if isinstance(exc, OSError):
-        return f"{exc.strerror or exc}: {exc.filename}" if getattr(exc, "filename", None) else str(exc)
-    return f"internal error: {type(exc).__name__}: {exc} (set RSE_DEBUG=1 for the traceback)"

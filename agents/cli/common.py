@@ -15,7 +15,8 @@ from typing import Any
 
 import click
 
-from estimation.errors import EXIT_BAD_INPUT, EXIT_EXPECTATION, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError, describe, exit_status
+from agents.net.exits import EXIT_BAD_INPUT, EXIT_EXPECTATION, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, describe, exit_status
+from estimation.errors import RSEError, ScenarioError
 
 from ..api import beyond_threat_model, load_experiment
 
@@ -37,7 +38,7 @@ def warn_threat_model(exp: Any) -> None:
 
 def handle_errors(fn: Callable) -> Callable:
     """Turn the runtime's own errors into a one-line message and an exit status
-    (:func:`estimation.errors.exit_status`); a bug is an internal error, its traceback only
+    (:func:`agents.net.exits.exit_status`); a bug is an internal error, its traceback only
     with ``RSE_DEBUG=1``."""
 
     @functools.wraps(fn)

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import click
 
-from estimation.errors import EXIT_FAILED, EXIT_OK, ExpectationFailed
+from agents.net.exits import EXIT_FAILED, EXIT_OK
+from estimation.errors import ExpectationFailed
 
 from .. import api
 from .common import (

@@ -21,7 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from estimation.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError, TransportError, describe, exit_status
+from agents.net.exits import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, describe, exit_status
+from estimation.errors import RSEError, ScenarioError, TransportError
 from transport.event_loop import run as run_loop
 
 from .parent import die_with_parent as _die_with_parent

@@ -43,7 +43,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from estimation.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RSEError, ScenarioError
+from agents.net.exits import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
+from estimation.errors import RSEError, ScenarioError
 
 from .child import ChildSpec, child_entry, group_label
 from .protocol import RunConfig

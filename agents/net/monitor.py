@@ -364,7 +364,7 @@ class MonitorProcess(Role):
     def _abort(self, exc: BaseException) -> None:
         """The run ends early: the rounds received are recorded, and the run directory is
         written with ``complete: false`` and why (:mod:`agents.recorder`)."""
-        from estimation.errors import describe
+        from agents.net.exits import describe
 
         if self.out_dir is None:
             return
