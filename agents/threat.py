@@ -1,11 +1,11 @@
 """Whether a scenario's own attacks stay inside the threat model its algorithm tolerates.
 
-The threat model per algorithm is the red-team search's (:data:`agents.redteam.space.BUDGETS`,
-docs/redteam.md): Lee-Kim-Shim tolerates ``estimator.q`` attacked sensor banks, the median
-bank of van der Horst et al. ``estimator.M``, Mao-Tabuada ``estimator.s``; Mitra et al.'s
-LFRE ``estimator.f`` Byzantine agents among the in-neighbours of any regular agent, with
-trusted sensors. An algorithm without a declared budget (Ugrinovskii's observers, a plugin)
-is not judged. ``rse check``, ``rse simulate`` and ``rse run`` print the one line
+The threat model is what the algorithm's plugin declares (``THREAT_MODEL``, a
+:class:`scenarios.helpers.ThreatModel`, the one ``rse redteam`` searches; docs/redteam.md):
+Lee-Kim-Shim tolerates ``estimator.q`` attacked sensor banks, the median bank of van der
+Horst et al. ``estimator.M``, Mao-Tabuada ``estimator.s``; Mitra et al.'s LFRE
+``estimator.f`` Byzantine agents among the in-neighbours of any regular agent, with trusted
+sensors. A plugin that declares no threat model (Ugrinovskii's observers) is not judged. ``rse check``, ``rse simulate`` and ``rse run`` print the one line
 :func:`beyond_threat_model` returns as a warning; nothing is refused (the paper scenarios
 that show what happens beyond the model are meant to run).
 """
@@ -34,16 +34,21 @@ def beyond_threat_model(exp: Any) -> str | None:
     agents and the budget key, or None when the attacks are within the model (or the
     algorithm declares none).
     """
-    from .redteam.space import BUDGETS
+    from scenarios import plugins
 
     sc = exp.scenario
     alg = sc.estimator.algorithm
-    if alg not in BUDGETS:
+    tm = getattr(plugins.algorithm(alg), "THREAT_MODEL", None)
+    if tm is None:
         return None
-    qkey, fkey = BUDGETS[alg]
+    qkey, fkey = tm.sensors, tm.agents
     banks = sorted({b for a in sc.attacks if a.target == "sensor" for b in a.sensors})
     byz = sorted({g for a in sc.attacks if a.target == "agent" for g in a.agents})
     problems: list[str] = []
+    kinds = sorted({a.kind for a in sc.attacks if a.target == "agent"} - set(tm.strategies or ()))
+    if byz and fkey is not None and tm.strategies is not None and kinds:
+        problems.append(f"Byzantine strategy {', '.join(kinds)} is not one {alg}'s proof covers "
+                        f"({', '.join(tm.strategies)})")
     if banks and qkey is None:
         problems.append(f"sensor bank(s) {_ids(banks)} attacked, but {alg} assumes trusted sensors")
     elif qkey is not None and len(banks) > int(getattr(sc.estimator, qkey)):
