@@ -261,59 +261,93 @@ def mss_curve(scenario: Path, overrides: list[str], p: np.ndarray) -> tuple[np.n
     return np.array([mss_margin(x, rho=rho, m=int(m), f=sc.estimator.f) for x in p]), max_erasure_probability(rho=rho, m=int(m), f=sc.estimator.f)
 
 
-def figure(out: Path, rows: list[dict[str, Any]], grid_specs: list[str], scenario: Path, overrides: list[str],
-           metric: str = "worst_final_relative_error_2", threshold: float = 1e-6) -> Path | None:
-    """Mean square of ``metric`` over seeds against the (first) grid key; the MSS bound of
-    Theorem 2 drawn on a second axis when the key is the erasure probability.
+#: the per-run figures a sweep figure can draw (the worst regular agent's, columns ``worst_NAME``)
+FIGURE_METRICS = ("final_relative_error_2", "final_error_2", "final_error_inf",
+                  "window_max_relative_error_2", "window_max_error_2", "window_max_error_inf")
 
-    The default metric is the worst regular agent's relative error at the horizon: the
-    absolute error of a growing state has a float64 floor of about 1e-15 |x|. The empirical
-    boundary is the first grid value at which the median over seeds exceeds ``threshold``.
+
+def figure_choice(scenario: Any, metric: str | None, threshold: float | None) -> tuple[str, float | None, str]:
+    """The metric and threshold of ``sweep.png``: the user's, else the algorithm's and the scenario's.
+
+    Without ``metric``: the relative error at the horizon for ``lfre`` (a growing state has
+    an absolute float64 floor of about 1e-15 |x|), the window's largest infinity-norm error
+    otherwise (the quantity of the other papers' bounds). Without ``threshold``: the
+    ``max`` of the scenario's ``[[expect]]`` bound on that quantity (regular agents, block
+    x or every block: a bound on each block bounds the whole state), else none (no boundary line). Returns ``(metric, threshold, where the threshold
+    came from)``; a metric not in :data:`FIGURE_METRICS` is a :class:`ScenarioError`.
     """
-    from .report import _pyplot
+    name = (metric or ("final_relative_error_2" if scenario.estimator.algorithm == "lfre"
+                       else "window_max_error_inf")).removeprefix("worst_")
+    if name not in FIGURE_METRICS:
+        raise ScenarioError(f"--metric: unknown metric {name!r}; expected one of {', '.join(FIGURE_METRICS)}",
+                            source="command line")
+    if threshold is not None:
+        return name, float(threshold), "--threshold"
+    for e in scenario.expect:
+        over = "final" if e.over == "final" else "window_max" if e.over == "window" else None
+        if e.max is not None and over and f"{over}_{e.metric}" == name and e.block in ("x", "all") and e.agents == "regular":
+            return name, float(e.max), "the scenario's [[expect]] bound"
+    return name, None, "none"
 
-    plt = _pyplot()
-    key = parse_grid(grid_specs[0])[0]
-    ok = [r for r in rows if r.get("status") == "ok" and r.get(metric) is not None]
+
+def figure_curve(rows: list[dict[str, Any]], key: str, metric: str, threshold: float | None) -> dict[str, Any] | None:
+    """Median and min-max over seeds of ``worst_METRIC`` per value of ``key``, and the first
+    value whose median exceeds ``threshold`` (``crossing``, None if none or no threshold)."""
+    col = f"worst_{metric}"
+    ok = [r for r in rows if r.get("status") == "ok" and r.get(col) is not None]
     if not ok:
         return None
     xs = sorted({r[key] for r in ok})
-    mse, lo, hi = [], [], []
-    for x in xs:
-        v = np.array([r[metric] for r in ok if r[key] == x], dtype=float) ** 2
-        v = np.where(np.isfinite(v), v, np.nan)
-        mse.append(np.nanmean(v))
-        lo.append(np.nanmin(v))
-        hi.append(np.nanmax(v))
+    vals = [np.array([r[col] for r in ok if r[key] == x], dtype=float) for x in xs]
+    vals = [np.where(np.isfinite(v), v, np.nan) for v in vals]
+    med = [float(np.nanmedian(v)) for v in vals]
+    crossing = None if threshold is None else next((x for x, m in zip(xs, med) if m > threshold), None)
+    return {"x": xs, "median": med, "low": [float(np.nanmin(v)) for v in vals],
+            "high": [float(np.nanmax(v)) for v in vals], "runs": len(ok), "crossing": crossing}
+
+
+def figure(out: Path, rows: list[dict[str, Any]], grid_specs: list[str], scenario: Path, overrides: list[str],
+           metric: str, threshold: float | None) -> tuple[Path, dict[str, Any]] | None:
+    """``sweep.png``: the median over seeds of the worst regular agent's ``metric`` against
+    the (first) grid key, the min-max band, ``threshold`` and where the median first
+    exceeds it; Theorem 2's MSS condition on a second axis when the key is the erasure
+    probability of an lfre scenario. Returns the path and the curve (:func:`figure_curve`)."""
+    from .report import _pyplot
+
+    key = parse_grid(grid_specs[0])[0]
+    c = figure_curve(rows, key, metric, threshold)
+    if c is None:
+        return None
+    plt = _pyplot()
+    xs = c["x"]
     fig, ax = plt.subplots(figsize=(8, 4.5))
-    ax.semilogy(xs, mse, "o-", label=f"empirical mean over seeds of ({metric.replace('worst_', 'worst regular ')})^2")
-    ax.fill_between(xs, lo, hi, alpha=0.2, label="min-max over seeds")
-    med = [np.nanmedian([r[metric] for r in ok if r[key] == x]) for x in xs]
-    boundary = next((x for x, m in zip(xs, med) if m > threshold), None)
-    if boundary is not None:
-        ax.axvline(boundary, color="tab:blue", ls="--", lw=1.2,
-                   label=f"empirical boundary: median > {threshold:g} from {key.split('.')[-1]} = {boundary:g}")
+    ax.semilogy(xs, c["median"], "o-", label=f"median over seeds of the worst regular agent's {metric}")
+    ax.fill_between(xs, c["low"], c["high"], alpha=0.2, label="min-max over seeds")
+    if threshold is not None:
+        ax.axhline(threshold, color="tab:gray", lw=0.8, ls=":", label=f"threshold {threshold:g}")
+    if c["crossing"] is not None:
+        ax.axvline(c["crossing"], color="tab:blue", ls="--", lw=1.2,
+                   label=f"median > {threshold:g} from {key.split('.')[-1]} = {c['crossing']:g}")
     ax.set_xlabel(key)
-    ax.set_ylabel("mean-square " + ("relative " if "relative" in metric else "") + "error at the horizon")
+    ax.set_ylabel(metric)
     ax.grid(True, which="both", alpha=0.3)
-    if key.endswith("drop_p"):
-        curve = mss_curve(scenario, overrides, np.array(xs, dtype=float))
-        if curve is not None:
-            margin, pstar = curve
-            ax2 = ax.twinx()
-            ax2.plot(xs, margin, "--", color="tab:red", label="rho^2 pbar(p) (Theorem 2, eqs. 23-24)")
-            ax2.axhline(1.0, color="tab:red", lw=0.8, ls=":")
-            ax2.set_ylabel("rho^2 pbar", color="tab:red")
-            ax.axvline(pstar, color="tab:red", lw=1.2, label=f"MSS certified for p < {pstar:.4f}")
-            h1, l1 = ax.get_legend_handles_labels()
-            h2, l2 = ax2.get_legend_handles_labels()
-            ax.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper left")
+    curve = mss_curve(scenario, overrides, np.array(xs, dtype=float)) if key.endswith("drop_p") else None
+    if curve is not None:
+        margin, pstar = curve
+        ax2 = ax.twinx()
+        ax2.plot(xs, margin, "--", color="tab:red", label="rho^2 pbar(p) (Theorem 2, eqs. 23-24)")
+        ax2.axhline(1.0, color="tab:red", lw=0.8, ls=":")
+        ax2.set_ylabel("rho^2 pbar", color="tab:red")
+        ax.axvline(pstar, color="tab:red", lw=1.2, label=f"MSS certified for p < {pstar:.4f}")
+        h1, l1 = ax.get_legend_handles_labels()
+        h2, l2 = ax2.get_legend_handles_labels()
+        ax.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper left")
     else:
         ax.legend(fontsize=8)
     name = json.loads((out / "sweep.json").read_text())["scenario"]
-    ax.set_title(f"{Path(name).stem}: {len(ok)} runs")
+    ax.set_title(f"{Path(name).stem}: {c['runs']} runs")
     fig.tight_layout()
     path = out / "sweep.png"
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    return path
+    return path, c

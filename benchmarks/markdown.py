@@ -27,7 +27,7 @@ METHOD = {
                "above the imports."),
     "run": ("`rse run` against the bare Zenoh skeleton",
             "`rse run` in lockstep (plant, monitor and one process per agent on loopback) on `mitra_cells.toml` "
-            "teams without the adversary, next to the skeleton of `benchmarks/zenoh_skeleton.py`: the same "
+            "teams without the adversary, next to the skeleton of `agents/net/skeleton.py`: the same "
             "processes, keys, message sizes and pattern with no decoding or estimation. The ratio moves by "
             "tens of points between invocations on a 2-core machine."),
     "sweep": ("`rse sweep`",

@@ -28,15 +28,23 @@ from .common import handle_errors, sigterm_interrupts
 @click.option("--rrd/--no-rrd", "record", default=True, show_default=True,
               help="Write each run's Rerun recording (points/ID/run.rrd), tagged with its grid values and seed.")
 @click.option("--png/--no-png", default=True, show_default=True, help="Write sweep.png (needs the plot extra).")
+@click.option("--metric", default=None, metavar="M",
+              help="What sweep.png draws, the worst regular agent's: final_relative_error_2, final_error_2, "
+                   "final_error_inf, window_max_relative_error_2, window_max_error_2 or window_max_error_inf "
+                   "(default: final_relative_error_2 for lfre, window_max_error_inf otherwise).")
+@click.option("--threshold", type=float, default=None, metavar="T",
+              help="Draw T and where the median first exceeds it (default: the scenario's [[expect]] bound "
+                   "on the metric, if any).")
 @handle_errors
 def sweep(scenario: Path, grid: tuple[str, ...], seeds: int, jobs: int, out: Path | None,
-          overrides: tuple[str, ...], cluster: str | None, record: bool, png: bool) -> None:
+          overrides: tuple[str, ...], cluster: str | None, record: bool, png: bool, metric: str | None,
+          threshold: float | None) -> None:
     """Run SCENARIO over a grid of overrides and seeds in parallel; resumable.
 
     Writes one row per run to sweep.parquet (grid values, seed, the worst regular agent's
-    final and window errors, whether the [expect] bounds held) and sweep.png: the
-    mean-square error at the horizon against the first grid key (with Theorem 2's MSS bound
-    when that key is network.channel.drop_p of an lfre scenario). Each run's Rerun
+    final and window errors, whether the [expect] bounds held) and sweep.png: the median
+    over seeds of --metric against the first grid key with --threshold (with Theorem 2's
+    MSS bound when that key is network.channel.drop_p of an lfre scenario). Each run's Rerun
     recording, tagged with its grid values and seed, is points/ID/run.rrd: `rerun
     OUT/points/*/run.rrd` opens them together. `rse report OUT` prints the table.
     """
@@ -46,10 +54,11 @@ def sweep(scenario: Path, grid: tuple[str, ...], seeds: int, jobs: int, out: Pat
 
     from ..console import err
     from ..console import out as console
-    from ..sweep import figure, run_sweep
+    from ..sweep import figure, figure_choice, run_sweep
 
     sigterm_interrupts()
     sc, _ = load(scenario, list(overrides))
+    metric, threshold, origin = figure_choice(sc, metric, threshold)  # a bad --metric fails before any run
     out = out or Path("runs") / f"sweep-{sc.run.name}"
     bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("runs"),
                    TimeElapsedColumn(), TimeRemainingColumn(), console=err)
@@ -70,6 +79,11 @@ def sweep(scenario: Path, grid: tuple[str, ...], seeds: int, jobs: int, out: Pat
     for r in failed[:5]:
         console.print(f"  point {r['point']} seed {r['seed']}: {r['status']}")
     if png:
-        path = figure(out, rows, list(grid), scenario, list(overrides))
-        if path is not None:
-            console.print(f"figure: {path}")
+        drawn = figure(out, rows, list(grid), scenario, list(overrides), metric, threshold)
+        if drawn is not None:
+            path, c = drawn
+            limit = "no threshold" if threshold is None else f"threshold {threshold:g} ({origin})"
+            where = "" if threshold is None else (
+                f", median above it from {c['crossing']:g}" if c["crossing"] is not None else ", median never above it")
+            console.print(f"figure: {path} (median of the worst regular agent's {metric}; {limit}{where})",
+                          soft_wrap=True)
