@@ -111,7 +111,7 @@ def design(
     target: float = 0.5,
     deadbeat: bool = False,
     fuse_stable: bool = True,
-    blocks: Sequence[Sequence[int]] | None = None,
+    blocks: Sequence[Sequence[int] | np.ndarray] | None = None,
     block_names: Sequence[str] | None = None,
 ) -> MitraDesign:
     """Modal form, observers, source sets and MEDAGs for a team of patrolling agents.

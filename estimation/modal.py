@@ -209,7 +209,7 @@ def _block_eig(Ab: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
     return lam, vec * sign
 
 
-def modal_form(A: Any, *, blocks: Sequence[Sequence[int]] | None = None) -> ModalForm:
+def modal_form(A: Any, *, blocks: Sequence[Sequence[int] | np.ndarray] | None = None) -> ModalForm:
     """Modal coordinates of ``A`` (eq. (4)), computed per decoupled block.
 
     Parameters

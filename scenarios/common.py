@@ -4,7 +4,7 @@ built, and the conditions ``rse check`` reports."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
@@ -74,6 +74,19 @@ class ByzantineSpec:
     payload: str = "huge"
     seed: int = 0
     agent: int = 0
+
+
+S = TypeVar("S")
+
+
+def estimator_section(exp: Any, cls: type[S]) -> S:
+    """The scenario's ``[estimator]`` table as the plugin's own section type ``cls`` (the
+    schema types it as the union of every plugin's); a plugin asked for another algorithm's
+    experiment is a bug, said as a ``TypeError``."""
+    est = exp.scenario.estimator
+    if not isinstance(est, cls):
+        raise TypeError(f"expected an [estimator] section of type {cls.__name__}, got {type(est).__name__}")
+    return est
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ builder, which are still being imported when the plugins are loaded.
 * :class:`Condition`: one line of ``rse check``; :func:`checked_design`: the design, or its
   failure as a condition;
 * :class:`PlantModel`: what a named plant (``PLANTS``) builds;
+* :func:`estimator_section`: the ``[estimator]`` table typed as the plugin's own section;
 * :class:`ThreatModel`: what the algorithm tolerates (``THREAT_MODEL``, for ``rse redteam``);
 * :class:`Strict`, :data:`Init`, :class:`UniformInit`, :class:`ZeroInit`, :data:`Matrix`,
   :data:`Vector`: building blocks of an ``[estimator]`` section.
@@ -34,13 +35,14 @@ from .common import (
     PlantStepper,
     ThreatModel,
     checked_design,
+    estimator_section,
     rng_for,
 )
 from .types import Init, Matrix, Strict, UniformInit, ValueInit, Vector, ZeroInit
 
 __all__ = [
     "STREAM_AGENT_X0", "STREAM_ESTIMATOR", "STREAM_PLANT_NOISE", "Condition", "Init", "Matrix", "PlantModel",
-    "PlantStepper", "Strict", "ThreatModel", "UniformInit", "ValueInit", "Vector", "ZeroInit", "checked_design", "explicit_AB",
+    "PlantStepper", "Strict", "ThreatModel", "UniformInit", "ValueInit", "Vector", "ZeroInit", "checked_design", "estimator_section", "explicit_AB",
     "init_vector", "matrix", "rng_for",
 ]
 

@@ -57,7 +57,7 @@ from estimation.median_bank import (
 )
 from estimation.median_solver import theorem1_bound
 
-from ..common import STREAM_AGENT_X0, Condition, ThreatModel, rng_for
+from ..common import STREAM_AGENT_X0, Condition, ThreatModel, estimator_section, rng_for
 from ..helpers import init_vector
 from ..types import Init, Strict
 from .inverters_plant import ERROR_BLOCK as ERROR_BLOCK  # the error block of the runs (tests and scripts read it here)
@@ -105,6 +105,11 @@ ESTIMATOR = MedianBankEstimator
 THREAT_MODEL = ThreatModel(sensors="M")  # at most M attacked sensors
 
 
+def _section(exp: "Experiment") -> MedianBankEstimator:
+    """This plugin's ``[estimator]`` section of ``exp``, typed."""
+    return estimator_section(exp, MedianBankEstimator)
+
+
 
 
 
@@ -139,7 +144,7 @@ def _sensors(exp: "Experiment", i: int) -> np.ndarray:
 
 
 def _check_agents(exp: "Experiment") -> None:
-    est = exp.scenario.estimator
+    est = _section(exp)
     N = exp.plant.C.shape[0]
     if not exp.static:
         raise ScenarioError("estimator.algorithm: 'median_bank' needs static agents ([[agents]] with sensors)", source=exp.source)
@@ -155,11 +160,11 @@ def _check_agents(exp: "Experiment") -> None:
 
 def _n_values(exp: "Experiment") -> int:
     """How many estimates the median is taken over: sensors (central) or agents (distributed)."""
-    return exp.plant.C.shape[0] if exp.scenario.estimator.mode in CENTRAL else exp.N
+    return exp.plant.C.shape[0] if _section(exp).mode in CENTRAL else exp.N
 
 
 def design(exp: "Experiment", *, check: bool = True) -> MedianBankDesign:
-    est = exp.scenario.estimator
+    est = _section(exp)
     st = _lure_stepper(exp)
     _check_agents(exp)
     if check and est.mode in ("median", "distributed", "flooding") and not _n_values(exp) > 2 * est.M:
@@ -199,9 +204,14 @@ class CentralEstimator(Batchable):
         self.mode, self._lure, self._dt, self._map = mode, lure, float(dt), to_lure
         self._perm = np.argsort(order)  # measurement (agent order) -> sensor order
         self._x = np.array(x0, dtype=float)
+        self._core: MedianBank | LureObserver | None
         if mode == "median":
+            if bank is None:
+                raise ValueError("the median mode needs its bank design")
             self._core = MedianBank(lure, bank=bank, dt=dt, x0=x0, n_attacked=M, substeps=substeps, measurement_map=to_lure)
         elif mode == "conventional":
+            if conventional is None:
+                raise ValueError("the conventional mode needs its gains")
             self._core = LureObserver(lure, sensors=range(lure.N), L=conventional["L"], K=conventional["K"], dt=dt, x0=x0,
                                       substeps=substeps, measurement_map=to_lure)
         else:
@@ -301,14 +311,14 @@ class FloodingEstimator:
 
 
 def _x0(exp: "Experiment", i: int, st: Any) -> np.ndarray:
-    spec = exp.scenario.estimator.x0
+    spec = _section(exp).x0
     if spec is None:
         return np.asarray(st.params.Q_bar, dtype=float) / 4.0
     return init_vector(spec, exp.n, rng_for(exp.seed, STREAM_AGENT_X0, i), where="estimator.x0")
 
 
 def make_estimator(exp: "Experiment", i: int):
-    est, st, des = exp.scenario.estimator, _lure_stepper(exp), exp.design
+    est, st, des = _section(exp), _lure_stepper(exp), exp.design
     x0 = _x0(exp, i, st)
     if est.mode in CENTRAL:
         return CentralEstimator(est.mode, st.lure, order=_sensors(exp, i), dt=exp.dt, x0=x0, bank=des.bank,
@@ -327,7 +337,7 @@ def make_estimator(exp: "Experiment", i: int):
 def conditions(exp: "Experiment") -> list[Condition]:
     """Slope bound (Assumption 3), the LMI (10) per observer (feasible, mu_d), N > 2M, and
     for the distributed modes the solver's figures."""
-    est = exp.scenario.estimator
+    est = _section(exp)
     out: list[Condition] = []
     try:
         st = _lure_stepper(exp)
@@ -397,8 +407,8 @@ def design_json(exp: "Experiment") -> dict:
     st = exp.stepper
     keys = ("L", "K", "P", "U", "mu_d", "mu_a", "mu_d_opt", "lmi_max_eig")
     return {
-        "mode": exp.scenario.estimator.mode,
-        "M": exp.scenario.estimator.M,
+        "mode": _section(exp).mode,
+        "M": _section(exp).M,
         "bank": None if d.bank is None else {k: d.bank[k] for k in keys + ("slack",)},
         "conventional": None if d.conventional is None else {k: d.conventional[k] for k in keys + ("max_rate",)},
         "errors": d.errors,

@@ -77,13 +77,14 @@ class DistributedBatch(Batch):
         sol = ms[0]._solver
         self._kw, self._ref, self.max_age, self.dt = sol._kw, sol._ref, sol.max_age, sol.dt
         self.n = ms[0].n
-        self._XI = None if any(m._solver._xi is None for m in ms) else np.stack([m._solver._xi for m in ms])
+        self._XI: np.ndarray | None = None if any(m._solver._xi is None for m in ms) else np.stack([m._solver._xi for m in ms])
         self._k = ms[0]._solver._k
 
     def step(self, k, measurements, inboxes) -> list[np.ndarray]:
         y = None if all(v is None for v in measurements) else \
             np.array([np.nan if v is None else float(np.asarray(v, dtype=float).reshape(-1)[0]) for v in measurements])
         Z = self._obs.step(k, y).copy()  # every member's local estimate z_i[k]
+        XI: np.ndarray
         if self._k is None:
             XI = Z.copy() if self._XI is None else self._XI
         else:
@@ -97,6 +98,7 @@ class DistributedBatch(Batch):
                 if nb:
                     d[a] = len(nb)
                     mean[a] = np.sum(nb, axis=0) / len(nb)
+            assert self._XI is not None  # set with self._k
             XI, kw = self._XI, self._kw
             for kk in range(self._k, k):
                 shift = None if self._ref is None else np.asarray(self._ref(kk + 1), dtype=float) - self._ref(kk)
@@ -108,10 +110,13 @@ class DistributedBatch(Batch):
         return list(XI)
 
     def estimates(self) -> np.ndarray:
+        assert self._XI is not None  # set by the first step
         return self._XI
 
     def sync(self) -> None:
         self._obs.sync()
+        if self._XI is None:  # not stepped yet: the members hold their own state
+            return
         for m, xi, z in zip(self.members, self._XI, self._Z):
             xi = xi.copy()
             xi.flags.writeable = False

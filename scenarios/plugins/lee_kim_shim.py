@@ -15,7 +15,7 @@ from estimation.lti import dense
 from estimation.median_solver import theorem1_bound
 from estimation.observability import redundancy_violations
 
-from ..common import STREAM_AGENT_X0, Condition, ThreatModel, rng_for
+from ..common import STREAM_AGENT_X0, Condition, ThreatModel, estimator_section, rng_for
 from ..helpers import init_vector
 from ..types import Init, Strict, UniformInit
 
@@ -43,12 +43,17 @@ ESTIMATOR = LeeKimShimEstimator
 THREAT_MODEL = ThreatModel(sensors="q")  # Theorem 1: at most q attacked sensor banks
 
 
+def _section(exp: "Experiment") -> LeeKimShimEstimator:
+    """This plugin's ``[estimator]`` section of ``exp``, typed."""
+    return estimator_section(exp, LeeKimShimEstimator)
+
+
 def _agent_C(exp: "Experiment") -> list[np.ndarray]:
     return [exp.plant.C[rows] for rows in exp.agent_rows]
 
 
 def design(exp: "Experiment", *, check: bool = True) -> LKSDesign | None:
-    est, source = exp.scenario.estimator, exp.source
+    est, source = _section(exp), exp.source
     if exp.discrete:
         raise ScenarioError("estimator.algorithm: 'lee_kim_shim' is a continuous-time observer; the plant is discrete-time", source=source)
     if not exp.static:
@@ -74,7 +79,7 @@ def design(exp: "Experiment", *, check: bool = True) -> LKSDesign | None:
 
 
 def make_estimator(exp: "Experiment", i: int) -> LeeKimShim:
-    est = exp.scenario.estimator
+    est = _section(exp)
     x0 = init_vector(est.x0, exp.n, rng_for(exp.seed, STREAM_AGENT_X0, i), where="estimator.x0")
     return LeeKimShim(exp.design, agent=i, kappa=est.kappa, gamma=est.gamma, dt=exp.dt, variant=est.variant,
                       sign=est.sign, input_fn=exp.input, x0=x0, max_age=est.max_age,
@@ -82,7 +87,7 @@ def make_estimator(exp: "Experiment", i: int) -> LeeKimShim:
 
 
 def conditions(exp: "Experiment") -> list[Condition]:
-    est = exp.scenario.estimator
+    est = _section(exp)
     out: list[Condition] = []
     agent_C = _agent_C(exp)
     bad = redundancy_violations(dense(exp.plant.A), agent_C, est.q)

@@ -42,7 +42,7 @@ from estimation.mao_tabuada import (
 )
 from estimation.sparse_detectability import design_compression, sparse_detectability
 
-from ..common import Condition, ThreatModel
+from ..common import Condition, ThreatModel, estimator_section
 from ..types import Matrix, Strict
 
 if TYPE_CHECKING:
@@ -72,6 +72,13 @@ class ConsensusOptions(Strict):
     @property
     def explicit(self) -> bool:
         return self.k_phi is not None
+
+    @property
+    def given(self) -> tuple[float, float, float] | None:
+        """``(k_phi, k_I, k_P)`` as given (all three or none, by the validator above)."""
+        if self.k_phi is None or self.k_I is None or self.k_P is None:
+            return None
+        return (self.k_phi, self.k_I, self.k_P)
 
 
 class SearchOptions(Strict):
@@ -106,6 +113,11 @@ class MaoTabuadaSection(Strict):
 
 ESTIMATOR = MaoTabuadaSection
 THREAT_MODEL = ThreatModel(sensors="s")  # at most s attacked nodes (s-sparse attacks)
+
+
+def _section(exp: "Experiment") -> MaoTabuadaSection:
+    """This plugin's ``[estimator]`` section of ``exp``, typed."""
+    return estimator_section(exp, MaoTabuadaSection)
 
 
 class MaoTabuadaAgent(MaoTabuadaEstimator, Diagnostics):
@@ -156,7 +168,7 @@ def _problem(exp: "Experiment") -> tuple[np.ndarray, np.ndarray]:
 
 def _D_argument(exp: "Experiment", A: np.ndarray, C: np.ndarray) -> np.ndarray:
     """The compression matrix: given, identity, or searched (raises ScenarioError)."""
-    est, source = exp.scenario.estimator, exp.source
+    est, source = _section(exp), exp.source
     p = C.shape[0]
     if not 0 <= 2 * est.s < p:
         raise ScenarioError(f"estimator.s: need 2s < p (p = {p} agents), got s = {est.s}", source=source)
@@ -181,18 +193,19 @@ def _D_argument(exp: "Experiment", A: np.ndarray, C: np.ndarray) -> np.ndarray:
 
 def _gains(exp: "Experiment") -> ConsensusGains:
     """Designed or given consensus gains (raises DesignError)."""
-    opt = exp.scenario.estimator.consensus
+    opt = _section(exp).consensus
     designed = design_consensus_gains(exp.Adj, max_spectral_radius=1.0 if opt.explicit else opt.max_spectral_radius)
-    if not opt.explicit:
+    if opt.given is None:
         return designed
+    k_phi, k_I, k_P = opt.given
     L = np.diag(exp.Adj.sum(axis=1)) - exp.Adj
     ev = np.sort(np.linalg.eigvalsh(L))
-    rho = disagreement_spectral_radius(ev[1:], k_phi=opt.k_phi, k_I=opt.k_I, k_P=opt.k_P)
+    rho = disagreement_spectral_radius(ev[1:], k_phi=k_phi, k_I=k_I, k_P=k_P)
     if not rho < opt.max_spectral_radius:
-        raise DesignError(f"the given gains k_phi = {opt.k_phi:g}, k_I = {opt.k_I:g}, k_P = {opt.k_P:g} give "
+        raise DesignError(f"the given gains k_phi = {k_phi:g}, k_I = {k_I:g}, k_P = {k_P:g} give "
                           f"disagreement spectral radius {rho:.9f}, not < {opt.max_spectral_radius:g} (unstable); "
                           f"the designed gains reach {designed.spectral_radius:.6g}")
-    return ConsensusGains(float(opt.k_phi), float(opt.k_I), float(opt.k_P), float(rho), designed.lambda_2,
+    return ConsensusGains(float(k_phi), float(k_I), float(k_P), float(rho), designed.lambda_2,
                           designed.lambda_max)
 
 
@@ -218,7 +231,7 @@ def horizon(exp: "Experiment", A: np.ndarray, *, cap: int | None = None) -> int:
 
 
 def design(exp: "Experiment", *, check: bool = True) -> MaoTabuadaDesign | None:
-    est, source = exp.scenario.estimator, exp.source
+    est, source = _section(exp), exp.source
     A, C = _problem(exp)
     try:
         D = _D_argument(exp, A, C)
@@ -265,14 +278,14 @@ def _not_detectable(A: np.ndarray, C: np.ndarray, s: int, rep, ids: list[int]) -
 
 
 def make_estimator(exp: "Experiment", i: int) -> MaoTabuadaAgent:
-    return MaoTabuadaAgent(exp.design, node=i, decoder=exp.scenario.estimator.decoder, agent_ids=tuple(exp.agent_ids))
+    return MaoTabuadaAgent(exp.design, node=i, decoder=_section(exp).decoder, agent_ids=tuple(exp.agent_ids))
 
 
 # ----------------------------------------------------------------------------- rse check
 def conditions(exp: "Experiment") -> list[Condition]:
     """Sparse detectability (identity and D), v, consensus gains and spectral radius,
     decoder size, sanity-check tolerance, safe horizon."""
-    est = exp.scenario.estimator
+    est = _section(exp)
     out: list[Condition] = []
     try:
         A, C = _problem(exp)
@@ -332,8 +345,8 @@ def design_json(exp: "Experiment") -> dict:
         return {}
     rep = check_report(d)
     rep["sparse_detectability"]["worst_support"] = [exp.agent_ids[i] for i in d.detectability.worst_support]
-    rep["consensus"]["given"] = exp.scenario.estimator.consensus.explicit
-    rep["decoder"]["used"] = exp.scenario.estimator.decoder
+    rep["consensus"]["given"] = _section(exp).consensus.explicit
+    rep["decoder"]["used"] = _section(exp).decoder
     rep["numerics"]["safe_horizon"] = horizon(exp, d.A)
     rep["numerics"]["x0_norm"] = signal_x0_norm(exp)
     return {**rep, "D": d.D, "alpha": d.alpha, "Ahat": d.Ahat, "sanity_rtol": d.rtol,

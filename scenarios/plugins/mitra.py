@@ -16,7 +16,7 @@ from estimation.mss import effective_erasure_probability, max_erasure_probabilit
 from estimation.patrols import Patrol
 from estimation.robustness import strong_robustness
 
-from ..common import STREAM_MAP, Condition, PlantModel, ThreatModel, checked_design, rng_for
+from ..common import STREAM_MAP, Condition, PlantModel, ThreatModel, checked_design, estimator_section, rng_for
 from ..types import Strict
 
 if TYPE_CHECKING:
@@ -41,6 +41,11 @@ class MitraEstimator(Strict):
 
 ESTIMATOR = MitraEstimator
 THREAT_MODEL = ThreatModel(agents="f")  # Theorem 2: f-local Byzantine agents, erasures up to drop_p
+
+
+def _section(exp: "Experiment") -> MitraEstimator:
+    """This plugin's ``[estimator]`` section of ``exp``, typed."""
+    return estimator_section(exp, MitraEstimator)
 
 
 def _cell_plant(sc: "Scenario", source: str, defaults: dict) -> PlantModel:
@@ -94,7 +99,7 @@ def _static_patrol(exp: "Experiment", i: int) -> Patrol:
 
 
 def design(exp: "Experiment", *, check: bool = True) -> "lfre.MitraDesign | None":
-    est = exp.scenario.estimator
+    est = _section(exp)
     if not exp.discrete:
         raise ScenarioError("estimator.algorithm: 'lfre' is a discrete-time estimator; set plant.time = 'discrete'", source=exp.source)
     patrols = [pt if pt is not None else _static_patrol(exp, i) for i, pt in enumerate(exp.patrols)]
@@ -110,12 +115,12 @@ def design(exp: "Experiment", *, check: bool = True) -> "lfre.MitraDesign | None
 
 
 def make_estimator(exp: "Experiment", i: int):
-    return lfre.make_estimator(exp.design, agent=i, rule=exp.scenario.estimator.rule)
+    return lfre.make_estimator(exp.design, agent=i, rule=_section(exp).rule)
 
 
 def conditions(exp: "Experiment") -> list[Condition]:
     """Source sets, strong robustness, MEDAG levels per block, and Theorem 2's MSS test."""
-    est = exp.scenario.estimator
+    est = _section(exp)
     des, out = checked_design(exp, design, "MEDAG for every mode (Definition 2, Lemma 2)")
     if des is None:
         return out

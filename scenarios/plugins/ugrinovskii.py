@@ -26,6 +26,7 @@ once per run and cached (``exp.design``; in memory per process; in the file
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -38,11 +39,15 @@ from estimation.hinf_riccati import RiccatiFlow
 from estimation.ugrinovskii import UgrinovskiiBaseline, UgrinovskiiNode
 from estimation.ugrinovskii_example import PAPER_GAMMA2, PAPER_GAMMA2_BAR, example_problem
 
-from ..common import STREAM_AGENT_X0, STREAM_ESTIMATOR, Condition, checked_design, rng_for
+from ..common import STREAM_AGENT_X0, STREAM_ESTIMATOR, Condition, checked_design, estimator_section, rng_for
 from ..helpers import init_vector
 
 if TYPE_CHECKING:
+    from estimation.ugrinovskii import _NodeBase as _Node  # what the mixin below is mixed into
+
     from ..build import Experiment
+else:
+    _Node = object
 
 from .ugrinovskii_design import UgrinovskiiDesign, _attack_specs, design
 from .ugrinovskii_plants import PLANTS as PLANTS  # the plugin contract's named plants
@@ -52,11 +57,20 @@ from .ugrinovskii_schema import Disturbance, UgrinovskiiEstimator
 ESTIMATOR = UgrinovskiiEstimator
 
 
+def _section(exp: "Experiment") -> UgrinovskiiEstimator:
+    """This plugin's ``[estimator]`` section of ``exp``, typed."""
+    return estimator_section(exp, UgrinovskiiEstimator)
+
+
 # ============================================================================ estimators
-class _Runtime(Diagnostics, Flags):
+class _Runtime(Diagnostics, Flags, _Node):
     """What the runtime adds to the core nodes: receiver-side channel noise ``H_ij v_ij``
     on ``c_ij`` and ``H_c,ij v_c,ij`` on ``eta_ij`` (for neighbours heard from), the
     attack flag and the diagnostics (``u_i``, and the attacker's ``f``, ``f_c`` for plots)."""
+
+    if TYPE_CHECKING:  # each node class the mixin is mixed into defines it
+        @property
+        def attack_indicator(self) -> np.ndarray: ...
 
     def _setup(self, *, noise_c: list | None, noise_eta: list | None, threshold: float, hold: float,
                flag_from: float, f_obs: AttackSignal | None, f_det: AttackSignal | None) -> None:
@@ -168,7 +182,7 @@ class BaselineObserver(_Runtime, UgrinovskiiBaseline):
 
 
 def make_estimator(exp: "Experiment", i: int):
-    est = exp.scenario.estimator
+    est = _section(exp)
     des: UgrinovskiiDesign = exp.design
     pb = des.problem
     nf = pb.F[i].shape[1]
@@ -179,7 +193,7 @@ def make_estimator(exp: "Experiment", i: int):
         sig["detector"] = None  # the baseline has no detector to attack
     x0 = init_vector(est.x0, exp.n, rng_for(exp.seed, STREAM_AGENT_X0, i), where="estimator.x0")
 
-    def noise(spec: Disturbance, which: int, mats: dict) -> list | None:
+    def noise(spec: Disturbance, which: int, mats: Mapping) -> list | None:
         if spec.kind == "zero" or (spec.kind == "white" and spec.intensity == 0):
             return None
         out = []
@@ -220,7 +234,7 @@ def _is_paper_example(exp: "Experiment", pb: ResilientProblem, *, detector: bool
     """The problem is Section IV's (``detector``: for the detector LMIs, which depend on
     ``F_c,i``: the paper's ``F_c,i = 0``; else up to ``F_c,i``, which the observer LMIs do
     not involve)."""
-    est = exp.scenario.estimator
+    est = _section(exp)
     if detector and est.detector_attack_matrix != "zero":
         return False
     ref = example_problem(detector_attack=est.detector_attack_matrix == "F")
@@ -244,7 +258,7 @@ def riccati_flows(exp: "Experiment", des: UgrinovskiiDesign) -> list[tuple[str, 
     for i in range(pb.N):
         nb = pb.neighbours[i]
         aid = exp.agent_ids[i]
-        if exp.scenario.estimator.controlled:
+        if _section(exp).controlled:
             A_, B_, S = node_riccati_data(pb, "det", {(i, j): d[f"U_{i}_{j}"] for j in nb}, i)
             flows.append((f"detector (35) of node {aid}",
                           RiccatiFlow(A=A_, B=B_, S=S, R=d[f"R_{i}"], gamma2=g, Y0=g * np.linalg.inv(d[f"Q_{i}"]),
@@ -290,7 +304,7 @@ def riccati_report(exp: "Experiment", des: UgrinovskiiDesign) -> dict[str, Any]:
 def conditions(exp: "Experiment") -> list[Condition]:
     """gamma^2, gamma_bar^2 (with the paper's values for Section IV), the back-off, and
     the Riccati solutions over the horizon (positive definite and bounded)."""
-    est = exp.scenario.estimator
+    est = _section(exp)
     des, out = checked_design(exp, design, "LMIs (34), (40), (52) feasible" if est.method == "lmi"
                               else "closed-form design (footnote 3)")
     if des is None:
@@ -343,7 +357,7 @@ def design_json(exp: "Experiment") -> dict:
         return {}
     d = des.result
     return {
-        "controlled": exp.scenario.estimator.controlled,
+        "controlled": _section(exp).controlled,
         "source": des.source,
         "gamma2": float(d["gamma2"]), "gamma2_bar": float(d["gamma2_bar"]),
         "nodes": {str(aid): i for i, aid in enumerate(exp.agent_ids)},

@@ -21,6 +21,7 @@ from estimation.hinf_lmi import design as lmi_design
 from estimation.lti import dense
 from estimation.ugrinovskii import first_order_attack_model
 
+from ..common import estimator_section
 from ..helpers import matrix
 from ..types import Matrix
 
@@ -31,6 +32,11 @@ from .ugrinovskii_plants import AttackSignal, DisturbanceSignal, HinfPlant
 from .ugrinovskii_schema import BiasingAttack, UgrinovskiiEstimator
 
 Amplitude = float | list[float]
+
+
+def _section(exp: "Experiment") -> UgrinovskiiEstimator:
+    """This plugin's ``[estimator]`` section of ``exp``, typed."""
+    return estimator_section(exp, UgrinovskiiEstimator)
 
 
 # ============================================================================ design
@@ -69,7 +75,7 @@ def _plant_data(exp: "Experiment") -> HinfPlant:
 def problem_of(exp: "Experiment") -> ResilientProblem:
     """The :class:`~estimation.hinf_lmi.ResilientProblem` of a scenario (node ``i`` = agent
     index ``i``; ``V_i`` = its in-neighbours in ``network.graph``)."""
-    est, source = exp.scenario.estimator, exp.source
+    est, source = _section(exp), exp.source
     st = _plant_data(exp)
     if not exp.static:
         raise ScenarioError("estimator.algorithm: 'ugrinovskii' needs static agents ([[agents]] with sensors)", source=source)
@@ -141,6 +147,8 @@ def _load_cache(path: Path) -> dict[str, np.ndarray]:
 
 def _solve(problem: ResilientProblem, est: UgrinovskiiEstimator) -> dict[str, np.ndarray]:
     if est.method == "closed_form":
+        if est.gamma2 is None or est.gamma2_bar is None:  # the section's validator already says so
+            raise ScenarioError("estimator.method = 'closed_form' needs estimator.gamma2 and estimator.gamma2_bar")
         return closed_form_design(problem, gamma2=est.gamma2, gamma2_bar=est.gamma2_bar,
                                   observer_channel=est.observer_channel)
     return lmi_design(problem, backoff=est.backoff, observer_channel=est.observer_channel, solver=est.solver)
@@ -150,7 +158,7 @@ def design(exp: "Experiment", *, check: bool = True) -> UgrinovskiiDesign | None
     """The problem, and the LMI design done once: from this process's memo, from
     ``estimator.design_cache`` (checked against the problem by
     :func:`estimation.hinf_lmi.check_design`) or solved (then written to the cache file)."""
-    est, source = exp.scenario.estimator, exp.source
+    est, source = _section(exp), exp.source
     if exp.discrete:
         raise ScenarioError("estimator.algorithm: 'ugrinovskii' is a continuous-time observer; the plant is discrete-time",
                             source=source)
@@ -191,7 +199,7 @@ def design(exp: "Experiment", *, check: bool = True) -> UgrinovskiiDesign | None
     if path is not None and path.suffix != ".json" and not origin.startswith("file"):
         path.parent.mkdir(parents=True, exist_ok=True)
         with path.open("wb") as fh:
-            np.savez(fh, **res)
+            np.savez(fh, **res)  # type: ignore[arg-type]  # numpy's stub matches **res against allow_pickle
     _MEMO[key] = {k: v.copy() for k, v in res.items()}
     while len(_MEMO) > _MEMO_SIZE:
         _MEMO.popitem(last=False)
@@ -204,7 +212,7 @@ def _agent_names(msg: str, ids: list[int]) -> str:
 
 
 def _attack_specs(exp: "Experiment") -> dict[tuple[int, str], list[tuple[int, BiasingAttack]]]:
-    est, source = exp.scenario.estimator, exp.source
+    est, source = _section(exp), exp.source
     out: dict[tuple[int, str], list[tuple[int, BiasingAttack]]] = {}
     for k, a in enumerate(est.biasing):
         if a.node not in exp.agent_ids:

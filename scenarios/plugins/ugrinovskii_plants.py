@@ -5,7 +5,7 @@ attack signals, and the ``ugrinovskii_example`` and ``hinf`` plant models (exact
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -97,12 +97,23 @@ class AttackSignal:
 
 
 # ============================================================================ plants
+class Signal(Protocol):
+    """A disturbance held over each step: its value at round ``k``, shape ``(dim,)``."""
+
+    dim: int
+
+    @property
+    def zero(self) -> bool: ...
+
+    def at(self, k: int) -> np.ndarray: ...
+
+
 class HinfPlant:
     """``x' = A x + B w``, ``y = C x + D v`` (all banks stacked), exact at step ``dt``
     with ``w``, ``v`` held over each step (a :class:`scenarios.common.PlantStepper`)."""
 
     def __init__(self, A: np.ndarray, B: np.ndarray, C: np.ndarray, d: float, *, dt: float,
-                 w: DisturbanceSignal, v: DisturbanceSignal) -> None:
+                 w: Signal, v: Signal) -> None:
         self.A, self.B, self.C = A, B, C
         self.d = float(d)
         self.D = self.d * np.eye(C.shape[0])
@@ -126,7 +137,7 @@ _EXAMPLE = {"b": 0.1, "d": 0.01, **_NOISE_DEFAULTS}
 _HINF = {"d": 0.01, **_NOISE_DEFAULTS}
 
 
-def _disturbance(p: dict, name: str, dim: int, sc: "Scenario", source: str) -> DisturbanceSignal:
+def _disturbance(p: dict, name: str, dim: int, sc: "Scenario", source: str) -> Signal:
     """``w`` or ``v`` from the flat plant parameters ``{name}_white``, ``{name}_pulse*``:
     white noise plus a pulse (their sum)."""
     white = Disturbance(kind="white", intensity=p[f"{name}_white"])
