@@ -50,6 +50,7 @@ __all__ = [
     "free_tcp_port",
     "tcp_endpoint",
     "normalize_endpoint",
+    "is_loopback",
     "make_config",
     "open_session",
     "close_session",
@@ -137,6 +138,20 @@ def any_port(endpoint: str) -> str:
     return f"{head}:0" if sep and "/" in head else endpoint
 
 
+def is_loopback(endpoint: str) -> bool:
+    """Whether ``endpoint`` (``PROTO/HOST:PORT``) names this host only (127.0.0.0/8, ::1,
+    ``localhost``); a name or an address of any other host is not."""
+    import ipaddress
+
+    host = endpoint.partition("/")[2].rpartition(":")[0].strip("[]") or endpoint
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 def normalize_endpoint(endpoint: str) -> str:
     """Validate a Zenoh endpoint; ``HOST:PORT`` without a protocol means ``tcp/HOST:PORT``.
 
@@ -191,6 +206,9 @@ class SessionOptions:
         yet). 0: the session opens at once and the links come up in the background (with
         ``retry_ms``): for a team whose processes start together and wait for each other's
         liveliness anyway.
+    acl : dict, optional
+        Zenoh's ``access_control`` section, enforced by this session on its own links
+        (:func:`transport.secure.peer_access_control`: a secure peer's ingress rules).
     """
 
     mode: str = "peer"
@@ -202,6 +220,7 @@ class SessionOptions:
     retry_ms: int | None = None
     small_links: bool = False
     scout_delay_ms: int | None = None
+    acl: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -257,6 +276,7 @@ class SessionOptions:
             retry_ms=self.retry_ms,
             small_links=self.small_links,
             scout_delay_ms=self.scout_delay_ms,
+            acl=self.acl,
         )
 
 
@@ -283,6 +303,7 @@ def make_config(
     retry_ms: int | None = None,
     small_links: bool = False,
     scout_delay_ms: int | None = None,
+    acl: dict[str, Any] | None = None,
 ) -> zenoh.Config:
     """Build a ``zenoh.Config`` with ``zenoh.Config()`` + ``insert_json5``.
 
@@ -292,7 +313,8 @@ def make_config(
     ``scouting/delay`` with ``scout_delay_ms``,
     the link buffers of ``small_links``, and
     with ``tls`` (a :class:`transport.secure.TlsFiles`) the ``transport/link/tls`` keys of
-    mutual TLS (:func:`transport.secure.tls_settings`); everything else keeps Zenoh's defaults. Values are written with ``json.dumps`` (JSON
+    mutual TLS (:func:`transport.secure.tls_settings`), ``access_control`` with ``acl``; everything
+    else keeps Zenoh's defaults. Values are written with ``json.dumps`` (JSON
     is JSON5), so no endpoint string can inject configuration.
     """
     if mode not in MODES:
@@ -322,6 +344,8 @@ def make_config(
 
             for key, value in tls_settings(tls).items():
                 conf.insert_json5(key, json.dumps(value))
+        if acl is not None:
+            conf.insert_json5("access_control", json.dumps(acl))
     except Exception as exc:  # zenoh.ZError: an endpoint Zenoh itself does not accept
         raise ValueError(f"invalid Zenoh configuration: {exc}") from exc
     return conf

@@ -97,8 +97,8 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
 @click.option("--router", "with_router", is_flag=True,
               help="Start a Zenoh router on a free loopback port; every process is its client (as across hosts).")
 @click.option("--secure", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
-              help="Mutual TLS and the router's access control, certificates from `rse certs DIR` (implies --router "
-                   "unless --connect names a secure router).")
+              help="Mutual TLS on every link, certificates from `rse certs DIR`; every peer enforces its own "
+                   "ingress rules (with --router or --connect: the router does).")
 @click.option("--run-id", default=None, help="Run id in every key expression (default: NAME-RANDOM).")
 @click.option("--agents-per-process", type=click.IntRange(min=1), default=1, show_default=True, metavar="N",
               help="Host N agents in each agent process (one Zenoh session, one task per agent): large teams.")
@@ -128,6 +128,7 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
     sigterm_interrupts()
     cfg = _config(mode, rate, deadline, startup_timeout, save_estimates, warmup)
     eps = _endpoints(connect)
+    warn_plain(eps, secure)
     if with_router and eps:
         raise ScenarioError("--router starts a router for the team; --connect names one already running: give one of them")
     if run_id is not None:
@@ -191,8 +192,9 @@ def _role_options(fn: Callable) -> Callable:
     fn = click.option("--identity", default=None, metavar="NAME",
                       help="With --secure: whose certificate to present (default: plant, monitor or agent-ID).")(fn)
     fn = click.option("--secure", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
-                      help="Mutual TLS with DIR/ca.pem, DIR/IDENTITY.pem and .key (`rse certs`); a client of a secure "
-                           "router (tcp/ endpoints are taken as tls/). Default: the team file's.")(fn)
+                      help="Mutual TLS with DIR/ca.pem, DIR/IDENTITY.pem and .key (`rse certs`): a secure peer with its "
+                           "own ingress rules, or with --client a client of a secure router (tcp/ endpoints are taken "
+                           "as tls/). Default: the team file's.")(fn)
     fn = click.option("--listen", default=None, metavar="tcp/HOST:PORT",
                       help="Peer mode: endpoint to listen on (default: the team file's, or a free loopback port).")(fn)
     fn = click.option("--connect", multiple=True, metavar="tcp/HOST:PORT",
@@ -214,7 +216,7 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
                mode: str, rate: float | None, deadline: float, startup_timeout: float, warmup: float, verbose: bool,
                secure: Path | None = None, identity: str | None = None, _validate: bool = True, **extra: Any):
     from transport.keys import validate_run_id
-    from transport.zenoh_session import SessionOptions, normalize_endpoint, tcp_endpoint
+    from transport.zenoh_session import normalize_endpoint, tcp_endpoint
 
     from ..net.child import ChildSpec
     from ..net.launcher import load_team, session_for
@@ -254,10 +256,10 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
         except ValueError as exc:
             raise ScenarioError(f"--identity: {exc}") from None
         tls = secure_files(secure, me)
-        if not (client or data):
-            raise ScenarioError("--secure needs --client --connect tls/ROUTER:PORT (a secure team's processes are "
-                                "clients of its router), or --team")
-        if listen is not None:
+        if not (client or data or eps or listen):
+            raise ScenarioError("--secure needs --connect tls/PEER:PORT or --listen tls/HOST:PORT (secure peers), "
+                                "--client --connect tls/ROUTER:PORT (a secure router), or --team")
+        if client and listen is not None:
             raise ScenarioError("--secure: a client of the router does not listen; leave out --listen")
     elif identity is not None:
         raise ScenarioError("--identity only applies with --secure")
@@ -268,9 +270,9 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
     elif data and not eps and listen is None:
         try:
             session = session_for(data, label, tls=tls)
-        except ValueError as exc:  # --secure against a team of peers: no router to be a client of
-            raise ScenarioError(f"--secure: the team has no router ({exc}); give --client --connect") from None
-    elif tls is not None:
+        except ValueError as exc:
+            raise ScenarioError(f"--secure: {exc}") from None
+    elif tls is not None and data.get("transport") == "client":
         session = _client_options(eps, tls)  # a secure team file: --connect names its router
     else:
         try:
@@ -278,13 +280,45 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
         except ValueError as exc:
             raise ScenarioError(f"--listen: {exc}") from None
         others = eps or tuple(v for k, v in data.get("endpoints", {}).items() if k != label)
-        session = SessionOptions(mode="peer", listen=(lst,), connect=others)
+        session = _peer_options(lst, others, tls, run_id)
+    warn_plain((*session.connect, *(session.listen or ())), tls)
     cfg = _config(mode, rate, deadline, startup_timeout, extra.pop("save_estimates", False), warmup)
     # validate the scenario here, so that a bad one is exit status 2 with the usual message
     if _validate:
         load_experiment(scenario, overrides, seed)
     return ChildSpec(role=role, scenario=str(scenario), overrides=tuple(overrides), seed=seed, run_id=run_id, cfg=cfg,
                      session=session, log_level=logging.INFO if verbose else logging.WARNING, **extra)
+
+
+def _peer_options(listen: str, connect: tuple[str, ...], tls: Any, run_id: str) -> Any:
+    """A peer on ``listen`` linked to ``connect``; with ``tls`` a secure peer (mutual TLS,
+    its own ingress rules for the identities of the certificate directory)."""
+    from transport.zenoh_session import SessionOptions
+
+    acl = None
+    if tls is not None:
+        from ..net.secure_team import peer_acl
+
+        acl = peer_acl(tls.directory, run_id)
+    try:
+        return SessionOptions(mode="peer", listen=(listen,), connect=connect, tls=tls, acl=acl)
+    except ValueError as exc:
+        raise ScenarioError(f"--connect/--listen: {exc}") from None
+
+
+def warn_plain(endpoints: Any, secure: Any) -> None:
+    """One line on stderr when a plain (not ``--secure``) process uses an endpoint off this
+    host: plain mode authenticates nobody."""
+    from transport.zenoh_session import is_loopback
+
+    if secure is not None:
+        return
+    remote = [e for e in endpoints if e and not is_loopback(e)]
+    if remote:
+        from ..console import err
+
+        err.print(f"warning: plain mode authenticates nobody: whoever reaches {remote[0]} can join and speak for "
+                  "any process (--secure DIR: see docs/deployment.md)", soft_wrap=True)
 
 
 def _client_options(eps: tuple[str, ...], tls: Any) -> Any:

@@ -12,9 +12,10 @@ multicast scouting off), or is a client of the routers given with ``--connect``.
 
 With ``router=True`` (``rse run --router``) it first starts a Zenoh router as a child
 process (:func:`agents.net.router.router_entry`) on a free loopback port and every
-process is a client of it; with ``secure`` (``rse run --secure DIR``) that router speaks
-mutual TLS and enforces the access control of :mod:`transport.secure`, and each process
-presents its own certificate from ``DIR``.
+process is a client of it. With ``secure`` (``rse run --secure DIR``) each process presents
+its own certificate from ``DIR`` on mutual-TLS links: peers that each enforce their own
+ingress rules (:mod:`agents.net.secure_team`), or with ``router`` clients of a router that
+enforces them.
 
 It writes ``team.json`` to the run directory (run id, endpoints, process ids) so that a
 killed agent can be restarted by hand against the running team::
@@ -109,8 +110,13 @@ def session_for(team: dict[str, Any], me: str, *, connect: tuple[str, ...] = (),
     (a :class:`transport.secure.TlsFiles`) for a secure team."""
     from transport.zenoh_session import SessionOptions, any_port, tcp_endpoint
 
-    if connect or team.get("transport") == "client" or tls is not None:
+    if connect or team.get("transport") == "client":
         return SessionOptions.client(connect or tuple(team.get("connect", ())), tls=tls)
+    acl = None
+    if tls is not None:  # a secure peer-to-peer team: its own ingress rules, as the others'
+        from .secure_team import peer_acl
+
+        acl = peer_acl(tls.directory, team["run_id"])
     eps = team["endpoints"]
     listen = eps.get(me, tcp_endpoint(0))
     if me == "monitor":
@@ -127,7 +133,7 @@ def session_for(team: dict[str, Any], me: str, *, connect: tuple[str, ...] = (),
     # little), retrying soon those that are not listening yet; unlike the sessions rse run
     # opens (gossip off, each linked pair connecting one way), Zenoh's gossip stays on here
     return SessionOptions(mode="peer", listen=(listen,), connect=tuple(v for k, v in eps.items() if k != me),
-                          retry_ms=PEER_RETRY_MS, small_links=True)
+                          retry_ms=PEER_RETRY_MS, small_links=True, tls=tls, acl=acl)
 
 
 @dataclass
@@ -188,8 +194,8 @@ def launch(
         asyncio task and node per agent, the same keys and messages); 1: one process each
 
     router : start a Zenoh router child on a free loopback port; every process is its client
-    secure : a directory of ``rse certs``: mutual TLS, each process with its own identity,
-        all clients of a router (the one at ``connect``, else one started as with ``router``)
+    secure : a directory of ``rse certs``: mutual TLS, each process with its own identity;
+        peers with their own ingress rules, or clients of the router of ``connect`` / ``router``
 
     dashboard : the monitor's :class:`agents.dashboard.DashboardOptions` (None: no Rerun output)
     show_urls : called with the dashboard's URLs once the monitor serves them
@@ -220,9 +226,12 @@ def launch(
     tls: dict[str, Any] = {nm: None for nm in names}
     if secure is not None and agents_per_process > 1:
         raise ScenarioError("--secure gives each agent its own identity: it cannot share a process (--agents-per-process)")
+    acl = None
     if secure is not None:
-        tls = {nm: _tls_files(secure, nm) for nm in ["router", *names] if nm != "router" or not connect}
-        router = not connect
+        from .secure_team import identities, peer_acl
+
+        tls = identities(secure, names, router=router)
+        acl = None if router or connect else peer_acl(secure, run_id, exp.agent_ids)
     router_ep = None
     if router:
         if connect:
@@ -240,6 +249,8 @@ def launch(
     else:
         ports = _distinct_ports(len(names))
         endpoints = {nm: tcp_endpoint(p) for nm, p in zip(names, ports)}
+        if secure is not None:  # secure peer-to-peer: TLS links, each peer's own ingress rules
+            endpoints = {nm: ep.replace("tcp/", "tls/", 1) for nm, ep in endpoints.items()}
         # each process linked to the ones it talks to (not a full mesh): it connects to
         # those that listen before it, the later ones connect to it; the monitor, which
         # reads the whole experiment first, listens last (it connects to all of its links)
@@ -249,7 +260,7 @@ def launch(
         # connect endpoint that is not listening yet: the processes start together, their
         # links come up in the background, and each waits for the others' liveliness
         sessions = {nm: SessionOptions(mode="peer", listen=(endpoints[nm],), gossip=False, retry_ms=PEER_RETRY_MS,
-                                       small_links=True, scout_delay_ms=0,
+                                       small_links=True, scout_delay_ms=0, tls=tls[nm], acl=acl,
                                        connect=tuple(endpoints[o] for o in names if o in links[nm] and order[o] < order[nm]))
                     for nm in names}
     team = Team(run_id, endpoints, "client" if connect else "peer", tuple(connect), str(scenario), tuple(overrides), seed, cfg,
@@ -439,16 +450,6 @@ def launch(
 
 
 ROUTER_START_S = 15.0  # how long the router child may take to open
-
-
-def _tls_files(directory: Path, name: str) -> Any:
-    """The TLS identity of process ``name`` (``"agent 3"`` -> ``agent-3``) in ``directory``."""
-    from transport.secure import tls_files
-
-    try:
-        return tls_files(directory, name.replace(" ", "-"))
-    except ValueError as exc:
-        raise ScenarioError(str(exc)) from None
 
 
 def _start_router(ctx: Any, endpoint: str, tls: Any, agent_ids: Any, run_id: str, stopping: list[int]) -> Any:

@@ -198,7 +198,7 @@ def test_only_the_monitor_hears_the_true_state(net):
 
 
 def test_rse_run_secure_equals_the_simulator_and_records_the_router_in_the_team_file(certs, tmp_path):
-    """`rse run --secure DIR` (a TLS router child, every process its client with its own
+    """`rse run --secure DIR --router` (a TLS router child, every process its client with its own
     certificate, access control on) in lockstep: the same run directory as rse simulate,
     every estimate equal; team.json names the router and the certificates."""
     from tests.agents.test_run_processes import _compare
@@ -206,7 +206,7 @@ def test_rse_run_secure_equals_the_simulator_and_records_the_router_in_the_team_
     out = tmp_path / "run"
     ps = Procs()
     try:
-        args = ["run", str(LKS), "--secure", str(certs), "--out", str(out), "--save-estimates", "--no-progress",
+        args = ["run", str(LKS), "--secure", str(certs), "--router", "--out", str(out), "--save-estimates", "--no-progress",
                 "--deadline", "30"]
         for ov in SMALL:
             args += ["--set", ov]
@@ -230,7 +230,7 @@ def test_rse_run_secure_sigterm_stops_every_process_and_the_router_within_2_s(ce
     ps = Procs()
     try:
         p = ps.start(rse_cmd("run", str(LKS), "--set", "run.dt=0.01", "--mode", "realtime", "--rate", "50",
-                             "--secure", str(certs), "--out", str(out), "--no-progress", "--no-rerun"))
+                             "--secure", str(certs), "--router", "--out", str(out), "--no-progress", "--no-rerun"))
         assert _until(lambda: _round(out) > 5, 300), p.poll() is None or p.communicate()
         team = json.loads((out / "team.json").read_text())
         assert "router" in team["pids"]
@@ -267,7 +267,7 @@ def test_secure_bad_input_is_one_line(certs, tmp_path):
             (["run", str(LKS), "--secure", str(tmp_path / "none"), "--out", str(tmp_path / "r")], "no such directory"),
             (["agent", "--id", "9", str(LKS), "--run-id", "x", "--client", "--connect", "tcp/127.0.0.1:1",
               "--secure", str(certs)], "missing agent-9.pem, agent-9.key"),
-            (["plant", str(LKS), "--run-id", "x", "--secure", str(certs)], "--secure needs --client"),
+            (["plant", str(LKS), "--run-id", "x", "--secure", str(certs)], "--secure needs --connect"),
             (["plant", str(LKS), "--run-id", "x", "--client", "--connect", "udp/127.0.0.1:1", "--secure", str(certs)],
              "every endpoint is tls/"),
             (["monitor", str(LKS), "--run-id", "x", "--out", str(tmp_path / "m"), "--client", "--connect",
