@@ -175,9 +175,12 @@ class Search:
     def observe(self, values: list[float]) -> None:
         """The metric of each run of the last batch (``inf`` for a failed run); updates the
         density when the query is decided."""
+        x = self.x
+        if x is None:
+            raise RuntimeError("observe() answers a query: call next_batch() first")
         above = [bool(v > self.threshold) for v in values]
         self.runs += len(above)
-        self.observed += [(float(self.x), p.seed, a) for p, a in zip(self._batch, above)]
+        self.observed += [(float(x), p.seed, a) for p, a in zip(self._batch, above)]
         self.values += list(values)
         self.above += sum(above)
         self.below += len(above) - sum(above)

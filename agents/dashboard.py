@@ -185,7 +185,7 @@ class Dashboard:
 
     # ------------------------------------------------------------------ per chunk
     def log_chunk(self, rows: np.ndarray, mon: Any, *, x: np.ndarray, est: np.ndarray,
-                  delivered: np.ndarray | None = None, counters: np.ndarray | None = None) -> None:
+                  delivered: dict[int, np.ndarray] | None = None, counters: np.ndarray | None = None) -> None:
         """Log rounds ``rows`` (ints): ``x`` ``(c, n)`` truth, ``est`` ``(c, N, n)`` estimates,
         ``delivered`` ``{round: (N, N) bool}`` for the map frames (``[i, j]``: j's message
         became visible to i in that round),

@@ -120,7 +120,7 @@ class Monitor:
         (see the module docstring; :func:`read_diagnostics` reads them off an estimator)."""
         self.record_diagnostic_rows(k, [i], values or {}, None if flagged is None else np.array([bool(flagged)]))
 
-    def record_diagnostic_rows(self, k: int, agents: Sequence[int], values: Mapping[str, np.ndarray],
+    def record_diagnostic_rows(self, k: int, agents: Sequence[int] | np.ndarray, values: Mapping[str, np.ndarray | float],
                                flagged: np.ndarray | None = None) -> None:
         """:meth:`record_diagnostics` of several agents at once: ``values`` name -> ``(M,)``
         (one per agent index in ``agents``), ``flagged`` ``(M,)`` bool or None."""

@@ -43,7 +43,7 @@ def recording_bytes(exp: Any, sim: Any, *, application_id: str, recording_id: st
     K = mon.last_round + 1
     regular = np.asarray(sim.regular, dtype=bool)
     rec = rr.RecordingStream(application_id, recording_id=recording_id)
-    stream = rec.binary_stream()
+    stream = rec.binary_stream()  # type: ignore[misc]  # rerun types the method as a plain function attribute
     try:
         rec.send_recording_name(run_label(values, seed))
         # one arrow type per key across runs (Rerun fixes a property's type at its first use)

@@ -50,7 +50,7 @@ class MetricSpec:
 
     def expect_table(self, threshold: float | None) -> dict[str, Any]:
         """An ``[[expect]]`` table that prints this metric when the scenario runs."""
-        t = {"label": f"red-team metric: {self.label()}", "metric": self.metric, "block": self.block,
+        t: dict[str, Any] = {"label": f"red-team metric: {self.label()}", "metric": self.metric, "block": self.block,
              "over": self.over if isinstance(self.over, str) else list(self.over)}
         if threshold is not None:
             t["max"] = float(threshold)
@@ -124,7 +124,7 @@ class Space:
                 att["omega"] = trial.suggest_float(f"s{s}_omega", *self.omega)
                 att["phase"] = trial.suggest_float(f"s{s}_phase", 0.0, 2 * math.pi)
             elif kind == "trajectory":
-                att["direction"] = [trial.suggest_float(f"s{s}_d{j}", -1.0, 1.0) for j in range(len(self.lti["x0"]))]
+                att["direction"] = [trial.suggest_float(f"s{s}_d{j}", -1.0, 1.0) for j in range(len(self._lti()["x0"]))]
             cand["sensor"].append(att)
         used: set[int] = set()
         for a in range(self.agents):
@@ -192,7 +192,7 @@ class Space:
         """``x0_attack = x0 + d`` with ``d`` along ``direction``, scaled so that the attack on
         ``bank``, ``C Ad^k d`` (Mao, Tabuada's dynamics-consistent attack), peaks at ``|size|``
         over the horizon."""
-        lti = self.lti
+        lti = self._lti()
         u = np.asarray(direction, dtype=float)
         C = lti["C"][lti["rows"][bank - 1]]
         peak, v = 0.0, u.copy()
@@ -201,6 +201,12 @@ class Space:
             v = lti["Ad"] @ v
         d = u * (abs(size) / peak) if peak > 0 and math.isfinite(peak) else np.zeros_like(u)
         return [float(x) for x in lti["x0"] + d]
+
+    def _lti(self) -> dict[str, Any]:
+        """The LTI data of the ``trajectory`` kind (set by :func:`derive` when it is searched)."""
+        if self.lti is None:
+            raise RuntimeError("the trajectory kind needs the LTI data of the space (derive sets it)")
+        return self.lti
 
     def overrides(self, cand: dict[str, Any]) -> list[str]:
         """``KEY=VALUE`` strings (TOML values) that turn the scenario into this candidate."""
