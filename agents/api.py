@@ -8,6 +8,7 @@
     run.metrics()                                 # pandas DataFrame: the columns of metrics.parquet
     run.summary(); run.expectations(); run.save("runs/x")
     team = rse.run_team(exp, out="runs/y")        # the same scenario as processes over Zenoh
+    rse.replay("runs/y", set={"estimator.variant": "linear"})  # its deliveries, another estimator
     rse.check(exp)                                # the paper's conditions, as data
     rse.sweep("scenarios/mitra_cells.toml", {"network.channel.drop_p": [0.1, 0.5]}, seeds=3)
     rse.sweep(..., cluster="tcp://HOST:8786")     # the same runs on a Dask cluster
@@ -52,6 +53,7 @@ __all__ = [
     "load_experiment",
     "deferred_signals",
     "ended_by",
+    "replay",
 ]
 
 
@@ -87,6 +89,19 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
     out_res = open_run(run_dir, exp)
     out_res.summary_data = res.summary
     return out_res
+
+
+def replay(run_dir: str | Path, *, out: str | Path | None = None,
+           set: Mapping[str, Any] | Iterable[str] | None = None, dashboard: Any = None,
+           progress: Callable[[int, float], None] | None = None) -> RunResult:
+    """Re-execute the recorded run ``run_dir`` (``rse run`` records its deliveries) in-process
+    and write the run directory ``out`` (default ``RUN_DIR-replay``; ``rse replay``). With the
+    run's scenario the estimates equal the run's bit for bit; ``set`` overrides keys on top
+    of it (``{"estimator.variant": "linear"}``: another estimator on the same measurements
+    and delivery fates). See :mod:`agents.replay` and docs/replay.md."""
+    from .replay_dir import replay_run
+
+    return replay_run(run_dir, out=out, set=set, dashboard=dashboard, progress=progress)
 
 
 def sweep(scenario: str | Path, grid: Mapping[str, Iterable[Any]] | Iterable[str], *, seeds: int = 1,

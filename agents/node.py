@@ -51,6 +51,8 @@ class AgentNode:
         self._perfect = channel.perfect
         #: Byzantine middleware (None for an honest agent): ``strategy(k, estimate, node)``
         self.strategy: Any = None
+        #: the delivery record (:class:`agents.deliveries.DeliveryWriter`; None: not recorded)
+        self.tap: Any = None
 
     def receive(self, sender: int, stamp: int, value: np.ndarray) -> None:
         """A message from ``sender`` stamped ``stamp`` reached this agent."""
@@ -87,7 +89,10 @@ class AgentNode:
         What goes on the network is :meth:`publish`'s business. The inbox is keyed by the
         in-neighbours' agent *indices* (``Received.sender`` likewise).
         """
-        return self.estimator.step(k, measurement, self.open_round(k))
+        inbox = self.open_round(k)
+        if self.tap is not None:
+            self.tap.stepped(k, measurement, inbox)
+        return self.estimator.step(k, measurement, inbox)
 
     def open_round(self, k: int) -> dict[int, Received]:
         """Make the messages visible in round ``k`` visible; returns the inbox of round
@@ -119,4 +124,7 @@ class AgentNode:
         """
         if self.strategy is None:
             return estimate
-        return self.strategy(k, estimate, self)
+        msg = self.strategy(k, estimate, self)
+        if self.tap is not None:
+            self.tap.sent(k, msg, self.out_neighbours)
+        return msg

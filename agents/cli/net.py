@@ -380,6 +380,8 @@ def agent(agent_spec: str, **kw: Any) -> None:
     label = f"agent {ids[0]}" if len(ids) == 1 else group_label(ids)
     extra: dict[str, Any] = {"agent_id": ids[0]} if len(ids) == 1 else {"agent_ids": tuple(ids)}
     extra["rejoin"] = team is not None  # a team that runs: see ChildSpec.rejoin
+    if team is not None:  # its delivery record goes to the team's run directory (agents.deliveries)
+        extra["out_dir"] = str(team if team.is_dir() else team.parent)
     spec = _role_spec("agent", label, _validate=cached is None, **extra, **kw)
     if cached is None:
         from ..middleware import make_channel, make_nodes

@@ -148,10 +148,20 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
         if spec.role == "agent":
             from .agent import run_agent_slice
 
-            if isinstance(exp, list):  # several agents: one task each over this one session
-                return await asyncio.gather(*(run_agent_slice(part, bus, keys, spec.cfg, rejoin=spec.rejoin)
-                                              for part in exp))
-            return await run_agent_slice(exp, bus, keys, spec.cfg, rejoin=spec.rejoin)
+            parts = exp if isinstance(exp, list) else [exp]
+            writers = []
+            if spec.out_dir:  # the delivery record (agents.deliveries), one file per agent
+                from agents.deliveries import attach
+
+                writers = attach([p.node for p in parts], spec.out_dir)
+            try:
+                if isinstance(exp, list):  # several agents: one task each over this one session
+                    return await asyncio.gather(*(run_agent_slice(part, bus, keys, spec.cfg, rejoin=spec.rejoin)
+                                                  for part in exp))
+                return await run_agent_slice(exp, bus, keys, spec.cfg, rejoin=spec.rejoin)
+            finally:
+                for w in writers:
+                    w.close()
         conn = spec.conn
 
         def progress(kind: str, data: Any) -> None:
