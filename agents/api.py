@@ -92,16 +92,18 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
 
 
 def replay(run_dir: str | Path, *, out: str | Path | None = None,
-           set: Mapping[str, Any] | Iterable[str] | None = None, dashboard: Any = None,
+           set: Mapping[str, Any] | Iterable[str] | None = None, rerun: Any = True,
            progress: Callable[[int, float], None] | None = None) -> RunResult:
     """Re-execute the recorded run ``run_dir`` (``rse run`` records its deliveries) in-process
     and write the run directory ``out`` (default ``RUN_DIR-replay``; ``rse replay``). With the
     run's scenario the estimates equal the run's bit for bit; ``set`` overrides keys on top
     of it (``{"estimator.variant": "linear"}``: another estimator on the same measurements
-    and delivery fates). See :mod:`agents.replay` and docs/replay.md."""
+    and delivery fates); ``rerun``: the Rerun recording (True: ``out/recording.rrd``, an
+    :class:`agents.dashboard.DashboardOptions`, or False). See :mod:`agents.replay` and
+    docs/replay.md."""
     from .replay_dir import replay_run
 
-    return replay_run(run_dir, out=out, set=set, dashboard=dashboard, progress=progress)
+    return replay_run(run_dir, out=out, set=set, rerun=rerun, progress=progress)
 
 
 def sweep(scenario: str | Path, grid: Mapping[str, Iterable[Any]] | Iterable[str], *, seeds: int = 1,

@@ -31,7 +31,7 @@ def fmt(v: Any, digits: int = 4) -> str:
 
 
 @contextmanager
-def round_progress(total: int, label: str, *, enabled: bool = True) -> Iterator[Any]:
+def round_progress(total: int | None, label: str, *, enabled: bool = True) -> Iterator[Any]:
     """A progress bar over rounds showing rounds/s and the worst current error.
 
     Yields ``update(k, worst_error)``.

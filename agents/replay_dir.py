@@ -52,12 +52,14 @@ def replay_experiment(run_dir: Path, overrides: Iterable[str] = ()) -> Any:
 
 
 def replay_run(run_dir: str | Path, *, out: str | Path | None = None,
-               set: Mapping[str, Any] | Iterable[str] | None = None, dashboard: Any = None,
+               set: Mapping[str, Any] | Iterable[str] | None = None, rerun: Any = True,
                progress: Callable[[int, float], None] | None = None) -> RunResult:
     """Replay the recorded run ``run_dir`` in-process (:mod:`agents.replay`) and write the
     run directory ``out`` (default ``RUN_DIR-replay``). ``set``: overrides on top of the
     run's scenario, e.g. ``{"estimator.variant": "linear"}`` for a counterfactual (the team,
-    its graph and the number of rounds must stay the run's). Returns the
+    its graph and the number of rounds must stay the run's). ``rerun``: True writes the
+    Rerun recording ``out/recording.rrd``; an :class:`agents.dashboard.DashboardOptions`
+    sends it where those say; False none. Returns the
     :class:`~agents.runs.RunResult` (``result.sim.estimates``: every replayed estimate)."""
     from .deliveries import read_record
     from .recorder import Recorder
@@ -78,7 +80,13 @@ def replay_run(run_dir: str | Path, *, out: str | Path | None = None,
     write_manifest(d, exp, exp.frozen, driver="replay", run_id=uuid.uuid4().hex[:12],
                    extra={"replay_of": str(src.resolve()), "replay_set": ov})
     write_design(d, exp)
-    rec = Recorder(d, exp, dashboard=dashboard)
+    dash = None
+    if rerun is not False and rerun is not None:
+        from .dashboard import Dashboard, DashboardOptions
+
+        opts = DashboardOptions(rrd=d / "recording.rrd") if rerun is True else rerun
+        dash = Dashboard(exp, run_id=json.loads((d / "manifest.json").read_text())["run_id"], options=opts)
+    rec = Recorder(d, exp, dashboard=dash)
     try:
         res = replay(exp, record, completed=original.get("complete") is True, links=original.get("links"),
                      dashboard=rec, progress=progress)
@@ -93,4 +101,8 @@ def replay_run(run_dir: str | Path, *, out: str | Path | None = None,
         with deferred_signals():
             rec.abort(ended_by(exc))
         raise
+    finally:
+        if dash is not None:
+            with deferred_signals():
+                dash.close()
     return result

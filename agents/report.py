@@ -39,7 +39,11 @@ class RunData:
 
     @property
     def name(self) -> str:
-        return self.manifest.get("scenario", {}).get("run", {}).get("name", self.path.name)
+        name = self.manifest.get("scenario", {}).get("run", {}).get("name", self.path.name)
+        if self.manifest.get("driver") == "replay":  # rse replay: and what it changed (a counterfactual)
+            changed = [str(s) for s in self.manifest.get("replay_set", [])]
+            name += " replay" + (f" ({', '.join(changed)})" if changed else "")
+        return name
 
     @property
     def blocks(self) -> list[str]:

@@ -19,6 +19,7 @@ from .compose import compose
 from .deploy import certs, router
 from .net import agent, monitor, plant, run
 from .redteam import redteam
+from .replay import replay
 from .report import report
 from .sim import check, simulate
 from .sweep import sweep
@@ -33,7 +34,7 @@ def cli() -> None:
 
 
 for _command in (simulate, check, run, plant, agent, monitor, router, certs, compose, report, sweep, boundary, redteam,
-                 bench):
+                 bench, replay):
     cli.add_command(_command)
 
 
