@@ -101,6 +101,7 @@ def simulate(
     record: bool = True,
     dashboard: Any = None,
     batched: bool = True,
+    deliveries: Any = None,
 ) -> SimResult:
     """Run the scenario in-process.
 
@@ -115,9 +116,16 @@ def simulate(
         (:func:`batch_groups`; a closed team, :func:`closed_team`, without the
         per-message bookkeeping); the estimates equal ``batched=False`` (each agent's
         own ``step``) bit for bit or within 1e-12 relative, as each algorithm's docs say
+    deliveries : a run directory to write the delivery record into (:mod:`agents.deliveries`,
+        as ``rse run`` does; each agent then runs its own ``step``)
     """
     channel = make_channel(exp)
     nodes = make_nodes(exp, channel)
+    writers = []
+    if deliveries is not None:
+        from .deliveries import attach
+
+        writers, batched = attach(nodes, deliveries), False
     plant = PlantRole(exp)
     mon = Monitor(exp)
     K = exp.n_rounds
@@ -150,58 +158,62 @@ def simulate(
     for i in range(N):
         heard[i, exp.in_neighbours(i)] = True
 
-    t0 = last_flush = time.perf_counter()
-    for k in range(K + 1):
-        y = plant.measure(k)
-        if closed is not None:
-            est_k = closed.step_closed(k, y)
-        else:
-            for view in views:
-                view.k = k
-            est_k = est_out
-            for g in groups:  # every batch in one call, then the agents stepped alone
-                outs = g.step(k, [measurement(i, k, y) for i in g.agents], [nodes[i].open_round(k) for i in g.agents])
-                got = g.estimates()
-                if isinstance(got, list):
-                    for i, e in zip(g.agents, got):
-                        est_out[i] = e
-                else:
-                    est_out[g.agents] = got
-                for i, out in zip(g.agents, outs):
-                    deliver(nodes[i], k, out, targets[i])
-            for i in singles:
-                node = nodes[i]
-                out = node.run_round(k, measurement(i, k, y))
-                est_out[i] = node.estimate(out)
-                msg = node.publish(k, out) if node.strategy is not None else out
-                deliver(node, k, msg, targets[i])
-        x = plant.x
-        if feed is not None and feed.wants(k):
+    try:
+        t0 = last_flush = time.perf_counter()
+        for k in range(K + 1):
+            y = plant.measure(k)
             if closed is not None:
-                if k > 0:
-                    feed.frame(k)[:] = heard
+                est_k = closed.step_closed(k, y)
             else:
-                feed.set_arrivals(k, (node.arrived for node in nodes))
-        if record:
-            mon.record(k, x, est_k)
-            for g, idx in rows_diag:
-                got = g.diagnostics()
-                if got is not None:
-                    mon.record_diagnostic_rows(k, idx, *got)
-            for i, est in diag:
-                mon.record_diagnostics(k, i, *read_diagnostics(est))
-        if keep_trajectories:
-            traj[k] = est_k
-            truth[k] = x
-        if progress is not None and (k & 255 == 0 or k == K):
-            progress(k, mon.current_worst() if record else float("nan"))
-            if dashboard is not None and time.perf_counter() - last_flush > 0.5:
-                mon.flush()  # keep the live view fresh
-                last_flush = time.perf_counter()
-        if k < K:
-            plant.advance(k)
-    for g in groups:
-        g.sync()
+                for view in views:
+                    view.k = k
+                est_k = est_out
+                for g in groups:  # every batch in one call, then the agents stepped alone
+                    outs = g.step(k, [measurement(i, k, y) for i in g.agents], [nodes[i].open_round(k) for i in g.agents])
+                    got = g.estimates()
+                    if isinstance(got, list):
+                        for i, e in zip(g.agents, got):
+                            est_out[i] = e
+                    else:
+                        est_out[g.agents] = got
+                    for i, out in zip(g.agents, outs):
+                        deliver(nodes[i], k, out, targets[i])
+                for i in singles:
+                    node = nodes[i]
+                    out = node.run_round(k, measurement(i, k, y))
+                    est_out[i] = node.estimate(out)
+                    msg = node.publish(k, out) if node.strategy is not None else out
+                    deliver(node, k, msg, targets[i])
+            x = plant.x
+            if feed is not None and feed.wants(k):
+                if closed is not None:
+                    if k > 0:
+                        feed.frame(k)[:] = heard
+                else:
+                    feed.set_arrivals(k, (node.arrived for node in nodes))
+            if record:
+                mon.record(k, x, est_k)
+                for g, idx in rows_diag:
+                    got = g.diagnostics()
+                    if got is not None:
+                        mon.record_diagnostic_rows(k, idx, *got)
+                for i, est in diag:
+                    mon.record_diagnostics(k, i, *read_diagnostics(est))
+            if keep_trajectories:
+                traj[k] = est_k
+                truth[k] = x
+            if progress is not None and (k & 255 == 0 or k == K):
+                progress(k, mon.current_worst() if record else float("nan"))
+                if dashboard is not None and time.perf_counter() - last_flush > 0.5:
+                    mon.flush()  # keep the live view fresh
+                    last_flush = time.perf_counter()
+            if k < K:
+                plant.advance(k)
+        for g in groups:
+            g.sync()
+    finally:
+        for w in writers:
+            w.close()
     if closed is not None:  # every message of every link was sent and delivered the next round
         for node in nodes:
             for c in node.links.values():
