@@ -51,6 +51,29 @@ def replay_experiment(run_dir: Path, overrides: Iterable[str] = ()) -> Any:
                 source=str(manifest.get("source") or run_dir / "manifest.json"))
 
 
+def reported(run_dir: Path, exp: Any) -> np.ndarray | None:
+    """``(rounds, N)`` bool: the agent-rounds whose estimate the run's monitor recorded (a
+    finite error in ``metrics.parquet``, else in its partial stream); None: no metrics."""
+    import pyarrow.parquet as pq
+
+    from .recorder import read_partial
+
+    try:
+        table = pq.read_table(run_dir / "metrics.parquet", columns=["k", "agent", "error_2"]) \
+            if (run_dir / "metrics.parquet").exists() else read_partial(run_dir)
+    except (OSError, ValueError):
+        return None
+    if table is None or table.num_rows == 0:
+        return None
+    k = table.column("k").to_numpy()
+    index = {aid: i for i, aid in enumerate(exp.agent_ids)}
+    a = np.array([index.get(int(v), -1) for v in table.column("agent").to_numpy()])
+    ok = ~np.isnan(table.column("error_2").to_numpy()) & (a >= 0) & (k >= 0)
+    out = np.zeros((int(k.max()) + 1, exp.N), dtype=bool)
+    out[k[ok], a[ok]] = True
+    return out
+
+
 def replay_run(run_dir: str | Path, *, out: str | Path | None = None,
                set: Mapping[str, Any] | Iterable[str] | None = None, rerun: Any = True,
                progress: Callable[[int, float], None] | None = None) -> RunResult:
@@ -89,7 +112,7 @@ def replay_run(run_dir: str | Path, *, out: str | Path | None = None,
     rec = Recorder(d, exp, dashboard=dash)
     try:
         res = replay(exp, record, completed=original.get("complete") is True, links=original.get("links"),
-                     dashboard=rec, progress=progress)
+                     reported=reported(src, exp), dashboard=rec, progress=progress)
         summary, results = summarise_run(exp, res.monitor, res.links, complete=res.complete, reason=res.reason)
         summary["replay"] = {"of": str(src), "set": ov, "last_round": res.last_round, "complete": res.complete}
         result = RunResult(exp, summary, results, driver="replay", sim=res)
