@@ -290,7 +290,7 @@ def launch(
     }
     # each agent reads its slice (as does `rse agent --team`, for a fast rejoin), not the experiment
     paths = write_slices(cache, slices, groups)  # one file per agent process
-    agent_base = {k: v for k, v in base.items() if k != "experiment"} | {"out_dir": str(run_dir)}  # deliveries
+    agent_base = {k: v for k, v in base.items() if k != "experiment"} | ({"out_dir": str(run_dir)} if cfg.deliveries else {})
     for nm, g in group_of.items():
         if len(g) == 1:
             specs[nm] = ChildSpec(role="agent", agent_id=g[0], session=sessions[nm], node=str(paths[g[0]]), **agent_base)

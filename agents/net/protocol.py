@@ -108,6 +108,8 @@ class RunConfig:
     warmup : scenario seconds an agent that joins a running team (round > 0) listens
         before it publishes (its estimate converges first instead of disturbing its
         neighbours); the monitor records it from its first round
+    deliveries : each agent process writes the delivery record (:mod:`agents.deliveries`)
+        into the run directory (off: benchmarks measuring its cost)
     """
 
     mode: str = "lockstep"
@@ -117,6 +119,7 @@ class RunConfig:
     save_estimates: bool = False
     linger: float = 2.0
     warmup: float = 3.0
+    deliveries: bool = True
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
