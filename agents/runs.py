@@ -172,13 +172,19 @@ def _summarise_sim(exp: Experiment, res: Any) -> tuple[dict[str, Any], list[Expe
 
 
 def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None = None, dashboard: Any = None,
-             batched: bool = True, keep_trajectories: bool = False, out: str | Path | None = None) -> RunResult:
-    """Run ``exp`` in the in-process lockstep simulator (deterministic for its seed).
+             batched: bool = True, keep_trajectories: bool = False, out: str | Path | None = None,
+             run_id: str | None = None, on_done: Callable[[RunResult], None] | None = None) -> RunResult:
+    """Run ``exp`` in the in-process lockstep simulator (deterministic for its seed): the
+    one lifecycle of an in-process run, for ``rse simulate`` and for Python alike.
 
     ``progress(k, worst_error)`` is called every 256 rounds; ``dashboard`` an
-    :class:`agents.dashboard.Dashboard` to stream to; ``keep_trajectories`` keeps every
+    :class:`agents.dashboard.Dashboard` to stream to, or its
+    :class:`~agents.dashboard.DashboardOptions` (the dashboard is then opened here, with the
+    run's ``run_id``, and closed on every path); ``keep_trajectories`` keeps every
     estimate and the true state (``result.sim.estimates``, ``result.sim.truth``). The
-    experiment is not consumed: every call starts from fresh estimators.
+    experiment is not consumed: every call starts from fresh estimators. ``on_done(result)``
+    is called once the run is complete and its directory written, while the dashboard is
+    still open (``rse simulate`` prints its tables there and keeps a served viewer up).
 
     ``out``: the run directory, written as the run goes (:mod:`agents.recorder`: metrics
     streamed at least once a second; ``manifest.json`` and ``design.json`` first). When the
@@ -186,20 +192,29 @@ def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None =
     early (an exception, Ctrl-C), the directory is left consistent with ``complete: false``
     in its ``summary.json`` before the exception propagates.
     """
+    from .dashboard import DashboardOptions
     from .simulate import simulate as run_sim
 
-    rec = d = None
+    run_id = run_id or uuid.uuid4().hex[:12]
+    rec = d = own = None
     if out is not None:
         d = Path(out)
         d.mkdir(parents=True, exist_ok=True)
         (d / "summary.json").unlink(missing_ok=True)  # a new run: not the summary of an earlier one
     try:
         if d is not None:
-            from .recorder import Recorder
-            from .rundir import write_design, write_manifest
+            from .rundir import write_manifest
 
             if not (d / "manifest.json").is_file():
-                write_manifest(d, exp, exp.frozen, driver="simulate", run_id=uuid.uuid4().hex[:12])
+                write_manifest(d, exp, exp.frozen, driver="simulate", run_id=run_id)
+        if isinstance(dashboard, DashboardOptions):
+            from .dashboard import Dashboard
+
+            own = dashboard = Dashboard(exp, run_id=run_id, options=dashboard)
+        if d is not None:
+            from .recorder import Recorder
+            from .rundir import write_design
+
             write_design(d, exp)
             rec = dashboard = Recorder(d, exp, dashboard=dashboard)
         res = run_sim(exp, progress=progress, dashboard=dashboard, batched=batched, keep_trajectories=keep_trajectories)
@@ -208,6 +223,10 @@ def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None =
         if rec is not None:
             result.save(rec.run_dir)
             rec.done()
+        if own is not None:
+            own.flush()  # the recording file is complete (a served viewer stays up in on_done)
+        if on_done is not None:
+            on_done(result)
     except BaseException as exc:
         if d is not None:
             with deferred_signals():
@@ -219,6 +238,10 @@ def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None =
 
                     write_incomplete(d, exp, None, regular_mask(exp), reason=ended_by(exc))
         raise
+    finally:
+        if own is not None:
+            with deferred_signals():
+                own.close()
     return result
 
 

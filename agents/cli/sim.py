@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
-import uuid
 from pathlib import Path
 
 import click
@@ -42,51 +42,36 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
     """
     from ..console import expectations_table, round_progress, summary_table
     from ..console import out as console
-    from ..recorder import incomplete_summary, regular_mask
-    from ..rundir import default_run_dir, write_json, write_manifest
+    from ..rundir import default_run_dir
 
     sigterm_interrupts()
-    exp, frozen = load_experiment(scenario, overrides, seed)
+    exp, _ = load_experiment(scenario, overrides, seed)
     warn_threat_model(exp)
     run_dir = out or default_run_dir(exp.scenario.run.name)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "summary.json").unlink(missing_ok=True)  # a new run: not the summary of an earlier one
-    run_id = uuid.uuid4().hex[:12]
-    dash = None
-    try:
-        write_manifest(run_dir, exp, frozen, driver="simulate", run_id=run_id)
-        dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
-        if dopts is not None:
-            from ..dashboard import Dashboard
+    dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
+    for what, url in (dopts.urls.items() if dopts is not None else ()):
+        console.print(f"rerun {what}: {url}")
 
-            dash = Dashboard(exp, run_id=run_id, options=dopts)
-            for what, url in dopts.urls.items():
-                console.print(f"rerun {what}: {url}")
-        with round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress) as update:
-            # the run directory is written as the run goes and left consistent if it ends early
-            res = api.simulate(exp, progress=update, dashboard=dash, out=run_dir)
-        if dash is not None:
-            dash.flush()  # the recording file is complete; a served viewer stays up below
-        results = res.expectations()
-        summary = res.summary()
-        console.print(summary_table(summary, title=f"{exp.scenario.run.name}: {res.sim.rounds} rounds, window t in [{exp.window[0]:g}, {exp.window[1]:g}]"))
-        if results:
-            console.print(expectations_table(results))
+    bar = contextlib.ExitStack()
+
+    def report(res: api.RunResult) -> None:
+        """The console's part, once the run directory is written (a served viewer still up)."""
+        bar.close()  # the progress bar ends before the tables
+        title = f"{exp.scenario.run.name}: {res.sim.rounds} rounds, window t in [{exp.window[0]:g}, {exp.window[1]:g}]"
+        console.print(summary_table(res.summary(), title=title))
+        if res.expectations():
+            console.print(expectations_table(res.expectations()))
         console.print(f"run directory: {run_dir}")
-        failed = [r for r in results if r.failed]
-        if dash is not None and dopts.serve_web:
+        if dopts is not None and dopts.serve_web:
             wait_while_serving(dopts.urls.get("web", ""))
-    except BaseException as exc:
-        if not (run_dir / "summary.json").exists():  # ended before the rounds began
-            with api.deferred_signals():
-                write_json(run_dir / "summary.json", incomplete_summary(exp, None, regular_mask(exp), reason=api.ended_by(exc)))
-        raise
-    finally:
-        if dash is not None:
-            with api.deferred_signals():
-                dash.close()
+
+    with bar:
+        update = bar.enter_context(round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress))
+        res = api.simulate(exp, progress=update, dashboard=dopts, out=run_dir, on_done=report)
+    failed = [r for r in res.expectations() if r.failed]
     if failed:
-        raise ExpectationFailed(f"{len(failed)} of {len(results)} expectation(s) failed: " + "; ".join(r.label for r in failed))
+        raise ExpectationFailed(f"{len(failed)} of {len(res.expectations())} expectation(s) failed: "
+                                + "; ".join(r.label for r in failed))
 
 
 @click.command()
