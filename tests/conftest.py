@@ -44,6 +44,26 @@ def pytest_runtest_setup(item):
         pytest.importorskip(name, reason=f"needs {name}" + (f" for {why}" if why else "") + " (not installed)")
 
 
+def pytest_collection_modifyitems(config, items):
+    """The scenario files' bounds (collected by ``rse.pytest_plugin`` under ``--rse``, the
+    suite's addopts) skip, as the suite's own tests do, where their design needs cvxpy and it
+    is absent (or hidden by ``--without cvxpy``)."""
+    for item in items:
+        if item.path.suffix == ".toml":
+            for mark in needs_cvxpy(item.path):
+                name, why = mark.args
+                if _absent(name):
+                    item.add_marker(pytest.mark.skip(reason=f"needs {name} for {why} (not installed)"))
+
+
+def _absent(name: str) -> bool:
+    if name in sys.modules:
+        return sys.modules[name] is None
+    import importlib.util
+
+    return importlib.util.find_spec(name) is None
+
+
 def needs_cvxpy(path: Path) -> list:
     """The ``needs("cvxpy")`` mark for a scenario file whose algorithm's design uses cvxpy."""
     algorithm = tomllib.loads(Path(path).read_text()).get("estimator", {}).get("algorithm")

@@ -20,7 +20,7 @@ import pytest
 
 from agents.rundir import write_design, write_metrics
 from agents.simulate import simulate
-from agents.summary import evaluate, summarise
+from agents.summary import summarise
 from estimation.errors import ScenarioError
 from estimation.ugrinovskii_example import PAPER_GAMMA2, PAPER_GAMMA2_BAR
 from scenarios.build import build, conditions
@@ -180,14 +180,6 @@ def test_attack_on_the_detector_as_well_leaves_the_estimates_unbiased(detector):
     assert e[window(t, 6.0, 7.0)].max() <= 1e-3
     assert e[window(t, 9.0, 10.0)].max() <= 1e-3
     assert summarise(exp, res.monitor, res.regular, res.links)["detected_attacks"]["agents"] == [2]
-
-
-@pytest.mark.parametrize("fixture", ["controlled", "baseline", "detector"])
-def test_the_scenario_files_meet_their_expect_bounds(fixture, request):
-    exp, res = request.getfixturevalue(fixture)
-    results = evaluate(exp, res.monitor, res.regular)
-    assert len(results) >= 2
-    assert all(r.ok for r in results), [(r.label, r.value) for r in results if not r.ok]
 
 
 # ----------------------------------------------------------------------------- general case
