@@ -91,7 +91,7 @@ def pytest_collect_file(file_path: Path, parent: pytest.Collector) -> ScenarioFi
 
 
 def _one_line(exc: BaseException) -> str:
-    from estimation.errors import describe
+    from agents.net.exits import describe
 
     return describe(exc)
 
