@@ -31,9 +31,11 @@ def warn_threat_model(exp: Any) -> None:
     """One warning line on stderr when the scenario's attacks exceed its threat model."""
     line = beyond_threat_model(exp)
     if line is not None:
+        from rich.markup import escape
+
         from ..console import err
 
-        err.print(f"[yellow]warning:[/yellow] {line}", soft_wrap=True)
+        err.print(f"[yellow]warning:[/yellow] {escape(line)}", soft_wrap=True)
 
 
 def handle_errors(fn: Callable) -> Callable:

@@ -48,6 +48,7 @@ def sweep(scenario: Path, grid: tuple[str, ...], seeds: int, jobs: int, out: Pat
     recording, tagged with its grid values and seed, is points/ID/run.rrd: `rerun
     OUT/points/*/run.rrd` opens them together. `rse report OUT` prints the table.
     """
+    from rich.markup import escape
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from scenarios.loader import load
@@ -85,5 +86,5 @@ def sweep(scenario: Path, grid: tuple[str, ...], seeds: int, jobs: int, out: Pat
             limit = "no threshold" if threshold is None else f"threshold {threshold:g} ({origin})"
             where = "" if threshold is None else (
                 f", median above it from {c['crossing']:g}" if c["crossing"] is not None else ", median never above it")
-            console.print(f"figure: {path} (median of the worst regular agent's {metric}; {limit}{where})",
+            console.print(escape(f"figure: {path} (median of the worst regular agent's {metric}; {limit}{where})"),
                           soft_wrap=True)

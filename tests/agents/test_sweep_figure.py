@@ -53,19 +53,27 @@ def test_the_curve_is_the_median_over_seeds_and_crosses_the_threshold_where_it_f
 
 
 @pytest.mark.needs("matplotlib", "sweep.png")
-def test_rse_sweep_draws_the_chosen_metric_and_threshold(tmp_path):
+def test_the_figure_draws_the_chosen_metric_and_threshold(tmp_path):
+    import json
+
+    from agents.sweep import figure
+
+    (tmp_path / "sweep.json").write_text(json.dumps({"scenario": "scenarios/lee_kim_shim.toml"}))
+    rows = [{"status": "ok", "point": f"p{g}", "seed": s, "estimator.gamma": g, "worst_final_error_inf": v / s}
+            for g, v in ((0.5, 1e-4), (2.0, 1e-2), (4.0, 1.0)) for s in (1, 2)]
+    drawn = figure(tmp_path, rows, ["estimator.gamma=0.5,2,4"], SCENARIOS / "lee_kim_shim.toml", [],
+                   "final_error_inf", 1e-3)
+    assert drawn is not None
+    path, c = drawn
+    assert path == tmp_path / "sweep.png" and path.stat().st_size > 10_000
+    assert c["crossing"] == 2.0 and c["median"] == pytest.approx([7.5e-5, 7.5e-3, 0.75])
+
+
+def test_an_unknown_metric_fails_rse_sweep_before_any_run(tmp_path):
     from click.testing import CliRunner
 
     from agents.cli import cli
 
-    out = tmp_path / "s"
-    res = CliRunner().invoke(cli, ["sweep", str(SCENARIOS / "lee_kim_shim.toml"), "--grid", "estimator.gamma=0.2,2",
-                                   "--set", "run.duration=2", "--set", "expect=[]", "--set", "output.window=[1.0, 2.0]",
-                                   "--jobs", "1", "--no-rrd", "--out", str(out),
-                                   "--metric", "final_error_inf", "--threshold", "1e-3"])
-    assert res.exit_code == 0, res.output
-    assert "median of the worst regular agent's final_error_inf; threshold 0.001 (--threshold)" in res.output
-    assert (out / "sweep.png").stat().st_size > 10_000
     bad = CliRunner().invoke(cli, ["sweep", str(SCENARIOS / "lee_kim_shim.toml"), "--grid", "estimator.gamma=2",
                                    "--out", str(tmp_path / "b"), "--metric", "mse"])
     assert bad.exit_code == 2 and "unknown metric 'mse'" in bad.output and not (tmp_path / "b").exists()
