@@ -173,7 +173,8 @@ def _summarise_sim(exp: Experiment, res: Any) -> tuple[dict[str, Any], list[Expe
 
 def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None = None, dashboard: Any = None,
              batched: bool = True, keep_trajectories: bool = False, out: str | Path | None = None,
-             run_id: str | None = None, on_done: Callable[[RunResult], None] | None = None) -> RunResult:
+             run_id: str | None = None, on_done: Callable[[RunResult], None] | None = None,
+             evidence: Any = None) -> RunResult:
     """Run ``exp`` in the in-process lockstep simulator (deterministic for its seed): the
     one lifecycle of an in-process run, for ``rse simulate`` and for Python alike.
 
@@ -191,6 +192,9 @@ def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None =
     run completes, the final files are written (``result.run_dir`` is set); when it ends
     early (an exception, Ctrl-C), the directory is left consistent with ``complete: false``
     in its ``summary.json`` before the exception propagates.
+
+    ``evidence``: an :class:`agents.evidence.EquivocationWatch` (signed messages, digests
+    compared): ``summary["evidence"]`` lists the convicted agents, ``evidence.jsonl`` the proofs.
     """
     from .dashboard import DashboardOptions
     from .simulate import simulate as run_sim
@@ -217,11 +221,16 @@ def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None =
 
             write_design(d, exp)
             rec = dashboard = Recorder(d, exp, dashboard=dashboard)
-        res = run_sim(exp, progress=progress, dashboard=dashboard, batched=batched, keep_trajectories=keep_trajectories)
+        res = run_sim(exp, progress=progress, dashboard=dashboard, batched=batched, keep_trajectories=keep_trajectories,
+                      evidence=evidence)
         summary, results = _summarise_sim(exp, res)
+        if evidence is not None:
+            summary["evidence"] = evidence.summary()
         result = RunResult(exp, summary, results, driver="simulate", sim=res)
         if rec is not None:
             result.save(rec.run_dir)
+            if evidence is not None:
+                evidence.write(rec.run_dir)
             rec.done()
         if own is not None:
             own.flush()  # the recording file is complete (a served viewer stays up in on_done)

@@ -102,6 +102,7 @@ def simulate(
     dashboard: Any = None,
     batched: bool = True,
     deliveries: Any = None,
+    evidence: Any = None,
 ) -> SimResult:
     """Run the scenario in-process.
 
@@ -118,6 +119,8 @@ def simulate(
         own ``step``) bit for bit or within 1e-12 relative, as each algorithm's docs say
     deliveries : a run directory to write the delivery record into (:mod:`agents.deliveries`,
         as ``rse run`` does; each agent then runs its own ``step``)
+    evidence : an :class:`agents.evidence.EquivocationWatch` through which every message is
+        delivered (signed, digested, compared one round later)
     """
     channel = make_channel(exp)
     nodes = make_nodes(exp, channel)
@@ -147,7 +150,8 @@ def simulate(
     groups = batch_groups(exp, nodes) if batched else []
     in_batch = {i for g in groups for i in g.agents}
     singles = [i for i in order if i not in in_batch]
-    closed = closed_team(exp, nodes, groups, channel) if batched else None
+    closed = closed_team(exp, nodes, groups, channel) if batched and evidence is None else None
+    send = deliver if evidence is None else evidence.deliver
     rows_diag = [(g, np.asarray(g.agents)) for g in groups if g.diagnostic_rows]  # read all at once
     by_rows = {i for g, _ in rows_diag for i in g.agents}
     diag = [(i, nodes[i].estimator) for i in range(N) if i not in by_rows and has_diagnostics(nodes[i].estimator)]
@@ -177,13 +181,13 @@ def simulate(
                     else:
                         est_out[g.agents] = got
                     for i, out in zip(g.agents, outs):
-                        deliver(nodes[i], k, out, targets[i])
+                        send(nodes[i], k, out, targets[i])
                 for i in singles:
                     node = nodes[i]
                     out = node.run_round(k, measurement(i, k, y))
                     est_out[i] = node.estimate(out)
                     msg = node.publish(k, out) if node.strategy is not None else out
-                    deliver(node, k, msg, targets[i])
+                    send(node, k, msg, targets[i])
             x = plant.x
             if feed is not None and feed.wants(k):
                 if closed is not None:
@@ -211,6 +215,8 @@ def simulate(
                 plant.advance(k)
         for g in groups:
             g.sync()
+        if evidence is not None:
+            evidence.finish(K)
     finally:
         for w in writers:
             w.close()

@@ -10,7 +10,8 @@ certificate has its identity as common name (what the router's access control ma
 see :mod:`transport.secure`) and is valid for both ends of a link (server and client
 authentication). Its subject alternative names are what a client may call the router:
 the given hosts, ``localhost``, ``127.0.0.1``, ``::1`` and the identity itself (``router``,
-the service name under docker compose). Private keys are PKCS#8 PEM, mode 0600, written
+the service name under docker compose). Beside each identity but the router's, an Ed25519
+signing key pair ``{identity}.sig.key`` / ``.sig.pub`` (:mod:`transport.signing`). Private keys are PKCS#8 PEM, mode 0600, written
 without a window in which another user could read them. The CA's private key is not
 kept: to add an identity, write the whole set again (``--force``).
 """
@@ -25,6 +26,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from transport.secure import CA_FILE, validate_identity
+from transport.signing import write_signing_key
 
 __all__ = ["write_certs", "validate_host", "DEFAULT_HOSTS", "DEFAULT_DAYS"]
 
@@ -178,4 +180,6 @@ def write_certs(
                                                               serialization.NoEncryption()))
         _write_public(d / f"{ident}.pem", cert.public_bytes(pem))
         written += [d / f"{ident}.pem", d / f"{ident}.key"]
+        if ident != "router":  # the router forwards; it signs nothing
+            written += write_signing_key(d, ident)
     return written

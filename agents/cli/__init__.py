@@ -17,6 +17,7 @@ from .bench import bench
 from .boundary import boundary
 from .compose import compose
 from .deploy import certs, router
+from .evidence import verify_evidence
 from .net import agent, monitor, plant, run
 from .redteam import redteam
 from .replay import replay
@@ -34,7 +35,7 @@ def cli() -> None:
 
 
 for _command in (simulate, check, run, plant, agent, monitor, router, certs, compose, report, sweep, boundary, redteam,
-                 bench, replay):
+                 bench, replay, verify_evidence):
     cli.add_command(_command)
 
 

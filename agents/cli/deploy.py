@@ -93,7 +93,7 @@ def certs(directory: Path, scenario: Path | None, agents: int | None, hosts: tup
 
         raise RSEError(str(exc)) from None
     click.echo(f"rse certs: {len(written)} files in {directory}: ca.pem and the certificates and keys of router, "
-               f"plant, monitor and agent(s) {_ranges(ids)}")
+               f"plant, monitor and agent(s) {_ranges(ids)}, and their Ed25519 signing keys (*.sig.key, *.sig.pub)")
 
 
 def _ranges(ids: list[int]) -> str:

@@ -28,7 +28,9 @@ def test_certs_for_a_scenario_one_identity_per_process(tmp_path):
                                  "--host", "10.0.0.5", "--host", "router.example.org"])
     assert r.exit_code == 0, r.output
     idents = ["router", "plant", "monitor", *(f"agent-{i}" for i in range(1, 6))]
-    assert {p.name for p in d.iterdir()} == {"ca.pem", *(f"{i}.pem" for i in idents), *(f"{i}.key" for i in idents)}
+    signing = [f"{i}.sig.{ext}" for i in idents if i != "router" for ext in ("key", "pub")]  # Ed25519, not the router's
+    assert {p.name for p in d.iterdir()} == {"ca.pem", *(f"{i}.pem" for i in idents), *(f"{i}.key" for i in idents),
+                                             *signing}
     ca = _load(d / "ca.pem")
     assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
     for ident in idents:
