@@ -58,14 +58,26 @@ __all__ = [
 
 
 def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "lockstep", rate: float | None = None,
-             deadline: float = 1.0, startup_timeout: float = 60.0, router: bool = False,
-             progress: bool = False, save_estimates: bool = False, agents_per_process: int = 1) -> RunResult:
-    """Run ``exp`` as a team of processes over Zenoh on this machine (``rse run``): plant,
-    monitor and one process per agent (``agents_per_process``: that many agents share a
-    process). Lockstep results equal :func:`simulate`'s.
+             deadline: float = 1.0, startup_timeout: float = 60.0, warmup: float = 3.0, router: bool = False,
+             connect: Iterable[str] = (), secure: str | Path | None = None, run_id: str | None = None,
+             progress: bool = False, save_estimates: bool = False, agents_per_process: int = 1,
+             dashboard: Any = None, on_urls: Callable[[dict[str, str]], None] | None = None,
+             while_serving: Callable[[dict[str, Any] | None], None] | None = None,
+             say: Callable[[str], None] | None = None) -> RunResult:
+    """Run ``exp`` as a team of processes over Zenoh on this machine (``rse run`` is a shell
+    over this function): plant, monitor and one process per agent (``agents_per_process``:
+    that many agents share a process). Lockstep results equal :func:`simulate`'s.
 
-    Returns when the team has finished; raises :class:`~estimation.errors.RSEError`
-    naming the failed process otherwise.
+    ``connect``: routers or peers to join (``tcp/HOST:PORT``), ``router``: start a router for
+    the team, ``secure``: a directory of ``rse certs`` (mutual TLS; secure peer-to-peer
+    unless a router is used). Hooks: ``dashboard`` the monitor's
+    :class:`~agents.dashboard.DashboardOptions`, ``on_urls(urls)`` once it serves them,
+    ``while_serving(summary)`` after the run while a served viewer is still up, ``say(line)``
+    for the launcher's one-line notes (default: silent).
+
+    Returns when the team has finished (``result.leaves`` lists the members that left
+    during the run); raises :class:`~estimation.errors.RSEError` naming the failed process
+    otherwise, ``KeyboardInterrupt`` when the run was interrupted.
     """
     from agents.net.exits import EXIT_INTERRUPTED
     from estimation.errors import RSEError, ScenarioError
@@ -76,18 +88,21 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
 
     try:
         cfg = RunConfig(mode=mode, rate=rate, deadline=deadline, startup_timeout=startup_timeout,
-                        save_estimates=save_estimates)
+                        save_estimates=save_estimates, warmup=warmup)
     except ValueError as exc:
         raise ScenarioError(str(exc)) from None
     run_dir = Path(out) if out is not None else default_run_dir(exp.scenario.run.name)
-    res = launch(Path(exp.source), exp.overrides, None, run_dir, cfg, progress=progress, exp=exp, frozen=exp.frozen,
-                 dashboard=None, router=router, say=lambda m: None, agents_per_process=agents_per_process)
+    res = launch(Path(exp.source), exp.overrides, None, run_dir, cfg, connect=tuple(connect), progress=progress,
+                 run_id=run_id, exp=exp, frozen=exp.frozen, dashboard=dashboard, show_urls=on_urls,
+                 while_serving=while_serving, router=router, secure=Path(secure) if secure is not None else None,
+                 say=say or (lambda m: None), agents_per_process=agents_per_process)
     if res.status == EXIT_INTERRUPTED:
         raise KeyboardInterrupt
     if res.status != 0 or res.summary is None:
         raise RSEError("; ".join(res.failures) or "the run failed")
     out_res = open_run(run_dir, exp)
     out_res.summary_data = res.summary
+    out_res.leaves = list(res.leaves)
     return out_res
 
 

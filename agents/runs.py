@@ -117,6 +117,7 @@ class RunResult:
     run_dir: Path | None = None
     driver: str = "simulate"
     sim: Any = field(default=None, repr=False)  # agents.simulate.SimResult of an in-process run
+    leaves: list[str] = field(default_factory=list)  # a team run's members that left during the run
 
     def summary(self) -> dict[str, Any]:
         return self.summary_data

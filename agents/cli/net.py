@@ -15,8 +15,9 @@ from typing import Any
 
 import click
 
-from estimation.errors import ExpectationFailed, RSEError, ScenarioError
+from estimation.errors import ExpectationFailed, ScenarioError
 
+from .. import api
 from .common import (
     EXIT_INTERRUPTED,
     dashboard_options,
@@ -122,11 +123,11 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
     """
     from transport.keys import validate_run_id
 
-    from ..net.launcher import launch
+    from ..console import err
     from ..rundir import default_run_dir
 
     sigterm_interrupts()
-    cfg = _config(mode, rate, deadline, startup_timeout, save_estimates, warmup)
+    _config(mode, rate, deadline, startup_timeout, save_estimates, warmup)  # bad values before the experiment is built
     eps = _endpoints(connect)
     warn_plain(eps, secure)
     if with_router and eps:
@@ -139,7 +140,7 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
     from ..net.startup import prestart
 
     prestart()  # the children's fork server starts while the experiment is built
-    exp, frozen = load_experiment(scenario, overrides, seed)
+    exp, _ = load_experiment(scenario, overrides, seed)
     warn_threat_model(exp)
     run_dir = out or default_run_dir(exp.scenario.run.name)
     dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
@@ -167,20 +168,17 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
         console.print(f"run directory: {run_dir}")
         wait_while_serving(served.get("urls", {}).get("web", ""))
 
-    res = launch(scenario, overrides, seed, run_dir, cfg, connect=eps, progress=progress, run_id=run_id, exp=exp,
-                 frozen=frozen, dashboard=dopts, show_urls=show_urls, while_serving=while_serving, router=with_router,
-                 secure=secure, agents_per_process=agents_per_process)
-    if res.status == EXIT_INTERRUPTED:
-        raise KeyboardInterrupt
-    if res.status != 0:
-        raise RSEError("; ".join(res.failures) or "the run failed")
+    res = api.run_team(exp, out=run_dir, mode=mode, rate=rate, deadline=deadline, startup_timeout=startup_timeout,
+                       warmup=warmup, router=with_router, connect=eps, secure=secure, run_id=run_id, progress=progress,
+                       save_estimates=save_estimates, agents_per_process=agents_per_process, dashboard=dopts,
+                       on_urls=show_urls, while_serving=while_serving, say=lambda m: err.print(m, soft_wrap=True))
     for leave in res.leaves:
         console.print(f"left during the run: {leave}")
     if served.get("printed"):
         if "failed" in served:
             raise served["failed"]
         return
-    _print_outcome(res.summary, title(res.summary))
+    _print_outcome(res.summary(), title(res.summary()))
     console.print(f"run directory: {run_dir}")
 
 
