@@ -57,8 +57,6 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
     run_id = uuid.uuid4().hex[:12]
     watch = _watch(exp, sign, run_id, ignore_convicted)
     dopts = dashboard_options(run_dir, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
-    for what, url in (dopts.urls.items() if dopts is not None else ()):
-        console.print(f"rerun {what}: {url}")
 
     bar = contextlib.ExitStack()
 
@@ -76,7 +74,17 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
             wait_while_serving(dopts.urls.get("web", ""))
 
     with bar:
-        update = bar.enter_context(round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress))
+        bar_update = bar.enter_context(round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress))
+        urls_shown = False
+
+        def update(k: int, worst: float) -> None:
+            nonlocal urls_shown
+            if not urls_shown and dopts is not None:  # round 0: the dashboard is open, its servers known
+                urls_shown = True
+                for what, url in dopts.urls.items():
+                    console.print(f"rerun {what}: {url}", soft_wrap=True)
+            bar_update(k, worst)
+
         res = api.simulate(exp, progress=update, dashboard=dopts, out=run_dir, on_done=report, run_id=run_id,
                            evidence=watch)
     failed = [r for r in res.expectations() if r.failed]
