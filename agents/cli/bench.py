@@ -81,14 +81,19 @@ def bench_simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None,
               help="Host N agents in each agent process (as rse run --agents-per-process).")
 @click.option("--startup-timeout", type=click.FloatRange(min=0.1), default=60.0, show_default=True,
               help="Seconds to wait for the team to assemble.")
+@click.option("--secure", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
+              help="Also run the team as secure peers (rse run --secure DIR: mutual TLS, each peer's access "
+                   "control) right after each plain run, and print its rounds/s, start-up and ratio to plain.")
 @handle_errors
 def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, deadline: float, skeleton: bool,
-              repeat: int, agents_per_process: int, startup_timeout: float) -> None:
+              repeat: int, agents_per_process: int, startup_timeout: float, secure: Path | None) -> None:
     """Lockstep rounds/s of `rse run` on SCENARIO next to the bare Zenoh skeletons', the
     start-up time (this command to round 0), and peak RSS and USS per process.
 
     With --repeat N the runtime and the skeletons run N times in turn (runtime, minimal,
     full pattern); a line per repetition, then the medians and the median of the ratios.
+    With --secure DIR each repetition also runs the team as secure peers, right after the
+    plain one: secure / plain is taken within the repetition.
     """
     import time
 
@@ -109,6 +114,7 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
         run_skeleton, sizes_for = _skeleton()
         sizes = sizes_for(exp)
     rows: list[tuple[float, float | None, float | None]] = []
+    secured: list[tuple[float, float]] = []
     procs: dict = {}
     for rep in range(repeat):
         t_launch = t_cmd if rep == 0 else time.time()
@@ -142,6 +148,9 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
                           f"rse run {rate:,.1f} rounds/s"
                           + (f", minimal skeleton {mini:,.1f}, full pattern {full:,.1f}, runtime / minimal "
                              f"{rate / mini:.0%}, / full pattern {rate / full:.0%}" if mini and full else ""))
+        if secure is not None:
+            secured.append(_secure_run(console, scenario, overrides, seed, exp, frozen, secure, deadline,
+                                       startup_timeout, rate, rep, repeat))
     if repeat > 1:
         med = statistics.median
         console.print(f"median over {repeat} runs: rse run {med(r[0] for r in rows):,.1f} rounds/s "
@@ -154,7 +163,36 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
                           f"max {max(minis):,.1f}); full pattern median {med(fulls):,.1f}")
             console.print(f"runtime / minimal:        median {med(ratios):.0%} of {len(ratios)} "
                           f"({', '.join(f'{x:.0%}' for x in ratios)}; target >= 75%)")
+    if len(secured) > 1:
+        med = statistics.median
+        console.print(f"secure peers, median over {len(secured)} runs: {med(r[0] for r in secured):,.1f} rounds/s, "
+                      f"secure / plain {med(r[1] for r in secured):.0%} ({', '.join(f'{r[1]:.0%}' for r in secured)}; "
+                      f"target >= 70%)")
     console.print(_memory_line(procs, agents_per_process))
+
+
+def _secure_run(console, scenario: Path, overrides: tuple[str, ...], seed: int | None, exp, frozen, secure: Path,
+                deadline: float, startup_timeout: float, plain: float, rep: int, repeat: int) -> tuple[float, float]:
+    """One lockstep run of the team as secure peers; prints its line, returns (rounds/s, secure / plain)."""
+    import time
+
+    from ..net.launcher import launch
+    from ..net.protocol import RunConfig
+
+    t0 = time.time()
+    with tempfile.TemporaryDirectory(prefix="rse-bench-") as tmp:
+        res = launch(scenario, overrides, seed, Path(tmp) / "run", RunConfig(deadline=deadline,
+                     startup_timeout=startup_timeout), progress=False, exp=exp, frozen=frozen, say=lambda m: None,
+                     secure=secure)
+    if res.status != 0 or res.summary is None:
+        raise RSEError("secure run: " + ("; ".join(res.failures) or "the benchmark run failed"))
+    perf = res.summary["performance"]
+    rate = perf["rounds_per_s"]
+    start = f"{perf['round0_at'] - t0:.2f} s" if perf.get("round0_at") else "n/a"
+    console.print(f"{'secure peers' if repeat == 1 else f'run {rep + 1} of {repeat}, secure peers'}: "
+                  f"{rate:8,.1f} rounds/s, {rate / plain:.0%} of plain (target >= 70%); start-up, the launch to "
+                  f"round 0: {start} (target <= 4 s)")
+    return rate, rate / plain
 
 
 def _print_one(console, start: str, N: int, rate: float, mini: float | None, full: float | None) -> None:
