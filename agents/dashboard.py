@@ -252,6 +252,14 @@ class Dashboard:
             rec.send_columns(f"map/links/{path}", indexes=idx,
                              columns=rr.Arrows2D.columns(origins=np.concatenate(origins), vectors=np.concatenate(vectors)).partition(lengths))
 
+    def log_conviction(self, agent_id: int, k: int) -> None:
+        """``events/convictions``: agent ``agent_id`` proven to equivocate, at round ``k``
+        (:mod:`agents.evidence`)."""
+        self.rec.set_time("k", sequence=int(k))
+        self.rec.set_time("t", duration=k * self.exp.dt)
+        self.rec.log("events/convictions", self.rr.TextLog(f"agent {agent_id} convicted of equivocation "
+                                                           f"(evidence.jsonl)", level="ERROR"))
+
     def is_map_frame(self, k: int) -> bool:
         return k % self._map_every == 0 or k == self.exp.n_rounds
 

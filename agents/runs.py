@@ -216,6 +216,7 @@ def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None =
             from .dashboard import Dashboard
 
             own = dashboard = Dashboard(exp, run_id=run_id, options=dashboard)
+        shown = dashboard  # the Rerun dashboard itself (the recorder below wraps it)
         if d is not None:
             from .recorder import Recorder
             from .rundir import write_design
@@ -227,6 +228,9 @@ def simulate(exp: Experiment, *, progress: Callable[[int, float], None] | None =
         summary, results = _summarise_sim(exp, res)
         if evidence is not None:
             summary["evidence"] = evidence.summary()
+            for j, k in evidence.convicted.items():
+                if hasattr(shown, "log_conviction"):
+                    shown.log_conviction(j, k)
         result = RunResult(exp, summary, results, driver="simulate", sim=res)
         if rec is not None:
             result.save(rec.run_dir)

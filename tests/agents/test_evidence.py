@@ -126,3 +126,20 @@ def test_signing_keys_are_private_and_bind_every_field(keys):
     for args in [("r2", "est", 3, None, 7, p), ("r", "done", 3, None, 7, p), ("r", "est", 4, None, 7, p),
                  ("r", "est", 3, 1, 7, p), ("r", "est", 3, None, 8, p), ("r", "est", 3, None, 7, payload_bytes([1.0, 2.5]))]:
         assert not verify(pub, sig, *args), args
+
+
+def test_the_dashboard_marks_the_conviction(keys, tmp_path):
+    pytest.importorskip("rerun")
+    pytest.importorskip("datafusion", reason="reading .rrd files needs rerun-sdk[catalog] (the test extra)")
+    from agents.cli import cli
+    from tests.agents.test_dashboard import read_rrd, rows
+
+    out = tmp_path / "run"
+    args = ["simulate", str(MITRA), "--sign", str(keys), "--out", str(out), "--no-progress"]
+    for ov in _equivocating(12):
+        args += ["--set", ov]
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    text = rows(read_rrd(out / "recording.rrd"), "/events/convictions:TextLog:text")
+    assert [int(k) for k in text["k"]] == [13]
+    assert "agent 5 convicted of equivocation" in str(text.iloc[0, 1])
