@@ -55,13 +55,13 @@ class ReplayResult:
         return self.rounds * self.regular.size / self.elapsed if self.elapsed > 0 else float("inf")
 
 
-def _steps(exp: Experiment, record: dict[int, list[Incarnation]]) -> dict[int, list[tuple[int, Incarnation, int, bool, bool]]]:
-    """Round -> ``(agent index, incarnation, row, fresh, last)`` of every recorded step, in
-    the order the agents act (:func:`agents.rounds.round_order`); ``fresh``: the first step
-    of a restarted agent, ``last``: the last step of an incarnation."""
+def _steps(exp: Experiment, record: dict[int, list[Incarnation]]) -> dict[int, list[tuple[int, Incarnation, int, bool]]]:
+    """Round -> ``(agent index, incarnation, row, fresh)`` of every recorded step, in the
+    order the agents act (:func:`agents.rounds.round_order`); ``fresh``: the first step of
+    a restarted agent."""
     index = {aid: i for i, aid in enumerate(exp.agent_ids)}
     rank = {i: r for r, i in enumerate(round_order(exp.N, exp.byzantine))}
-    out: dict[int, list[tuple[int, Incarnation, int, bool, bool]]] = {}
+    out: dict[int, list[tuple[int, Incarnation, int, bool]]] = {}
     for aid, incs in record.items():
         i = index.get(aid)
         if i is None:
@@ -72,7 +72,7 @@ def _steps(exp: Experiment, record: dict[int, list[Incarnation]]) -> dict[int, l
             if inc.in_ids != want:
                 raise RSEError(f"the record of agent {aid} lists in-neighbours {inc.in_ids}; the scenario has {want}")
             for row, k in enumerate(inc.k):
-                out.setdefault(int(k), []).append((i, inc, row, n > 0 and row == 0, row == len(inc.k) - 1))
+                out.setdefault(int(k), []).append((i, inc, row, n > 0 and row == 0))
     for steps in out.values():
         steps.sort(key=lambda s: rank[s[0]])
     return out
@@ -94,9 +94,10 @@ def replay(exp: Experiment, record: dict[int, list[Incarnation]], *, completed: 
     ``exp`` (the run's scenario, or a counterfactual one with the same team); see the
     module docstring. ``completed``: the run completed (else it ends at the last round all
     records reached); ``links``: the run's link counters, for the summary; ``reported``:
-    ``(rounds, N)`` bool, the agent-rounds the run's monitor recorded: the last step of an
-    incarnation (a process killed in or after it, whose report may have died with it)
-    counts as reported only where the monitor recorded it."""
+    ``(rounds, N)`` bool, the agent-rounds the run's monitor recorded (its own deliveries:
+    a report that came after the monitor closed its round, or that died with a killed
+    process, is absent from the run's metrics): within its rounds, an agent-round is in
+    the replay's metrics only where it is in the run's."""
     N, n = exp.N, exp.n
     last = min(last_complete_round(record, completed), exp.n_rounds)
     steps = _steps(exp, record)
@@ -122,7 +123,8 @@ def replay(exp: Experiment, record: dict[int, list[Incarnation]], *, completed: 
     for k in range(last + 1):
         plant.measure(k)  # the plant's own state (its noise draws) as in the run
         present = np.zeros(N, dtype=bool)
-        for i, inc, row, fresh, end in steps.get(k, ()):
+        heard = reported[k] if reported is not None and k < len(reported) else None
+        for i, inc, row, fresh in steps.get(k, ()):
             if fresh:  # a restarted agent: a new process, a fresh estimator
                 ests[i] = exp.make_estimator(i)
             aid = exp.agent_ids[i]
@@ -143,8 +145,7 @@ def replay(exp: Experiment, record: dict[int, list[Incarnation]], *, completed: 
                 payload[(aid, k)] = np.array(out, dtype=float)  # the run sent these bytes
             own = out if isinstance(est, EstimatePayload) and est.payload_is_estimate else est.estimate
             est_k[i] = own
-            present[i] = bool(np.all(np.isfinite(own))) and not (
-                end and reported is not None and k < len(reported) and not reported[k, i])
+            present[i] = bool(np.all(np.isfinite(own))) and (heard is None or bool(heard[i]))
         if reason is not None:
             k -= 1
             break

@@ -66,25 +66,37 @@ def _replay(run: Path, out: Path, *sets: str) -> dict:
 def _assert_equal(run: Path, rep: Path) -> np.ndarray:
     a, b = np.load(run / "estimates.npy"), np.load(rep / "estimates.npy")
     assert a.shape == b.shape
-    assert np.array_equal(np.isnan(a), np.isnan(b)), np.argwhere(np.isnan(a) != np.isnan(b))[:10]
+    odd = np.argwhere(np.isnan(a).any(axis=2) != np.isnan(b).any(axis=2))
+    assert not len(odd), [(int(k), int(i), "run NaN" if np.isnan(a[k, i]).any() else "replay NaN") for k, i in odd[:10]]
+    assert np.array_equal(np.isnan(a), np.isnan(b))
     both = ~np.isnan(a)
     diff = float(np.abs(a[both] - b[both]).max())
+    # the agent-rounds the record has but the run's monitor did not (a late report, a killed
+    # process's last): the replay leaves them out as the run did (docs/replay.md); few
+    stepped = np.zeros(a.shape[:2], dtype=bool)
+    ids = sorted(read_record(run))
+    for aid, incs in read_record(run).items():
+        for inc in incs:
+            stepped[inc.k[inc.k < len(a)], ids.index(aid)] = True
+    unheard = int((stepped & np.isnan(a).any(axis=2)).sum())
     print(f"\n{run.name}: {both.any(axis=2).sum()} agent-rounds, max difference {diff}, "
-          f"{np.isnan(a).any(axis=2).sum()} NaN agent-rounds in both")
+          f"{np.isnan(a).any(axis=2).sum()} NaN agent-rounds in both, {unheard} stepped but unheard by the monitor")
     assert diff == 0.0
+    assert not (both.any(axis=2) & ~stepped).any()  # every estimate the monitor had: a recorded step
+    assert unheard <= max(3, stepped.sum() // 200)
     return a
 
 
 def test_mitra_cells_realtime_kill_and_restart_replays_bit_for_bit(procs, tmp_path):
     """mitra_cells.toml in realtime at 50 Hz (erasures p = 0.32, the cancelling adversary),
-    400 rounds; agent 3 killed (SIGKILL) at round 40 and restarted with `rse agent --team`:
+    600 rounds; agent 3 killed (SIGKILL) at round 40 and restarted at once with `rse agent
+    --team` (it rejoins seconds later on a loaded machine):
     two incarnations in its record, the replay equal to the run, NaN patterns equal."""
     out = tmp_path / "run"
-    p = procs.start(_run_args(MITRA, out, 50, "run.rounds=400"))
+    p = procs.start(_run_args(MITRA, out, 50, "run.rounds=600"))
     _wait_round(p, out, 40)
     team = wait_json(out / "team.json", 10)
     os.kill(team["pids"]["agent 3"], signal.SIGKILL)
-    _wait_round(p, out, 50)
     r = procs.start(rse_cmd("agent", "--id", "3", "--team", str(out / "team.json")))
     _, se = p.communicate(timeout=90)
     r.communicate(timeout=30)
@@ -92,21 +104,24 @@ def test_mitra_cells_realtime_kill_and_restart_replays_bit_for_bit(procs, tmp_pa
     rec = read_record(out)
     assert len(rec[3]) == 2 and len(rec[3][1].k) > 0, "agent 3 restarted: a second incarnation"
     summary = rse.replay(out, out=tmp_path / "replay", rerun=False).summary()
-    assert summary["complete"] is True and summary["replay"]["last_round"] == 400
+    assert summary["complete"] is True and summary["replay"]["last_round"] == 600
     a = _assert_equal(out, tmp_path / "replay")
     gap = np.isnan(a[:, 2]).all(axis=1)
     assert gap[rec[3][0].k[-1] + 1: rec[3][1].k[0]].all()  # agent 3 dead between its incarnations
 
 
 def test_lee_kim_shim_realtime_with_busy_processes_and_its_linear_counterfactual(procs, tmp_path):
-    """lee_kim_shim.toml in realtime at 100 Hz, 2 s, two busy processes beside it (rounds
-    skipped): the replay equal to the run; the linear baseline replayed on the same
+    """lee_kim_shim.toml in realtime at 100 Hz, 2 s, two busy processes beside it, all on one
+    CPU (rounds skipped): the replay equal to the run; the linear baseline replayed on the same
     deliveries steps at the same agent-rounds, differs, and `rse report` compares the two
     as a table and a figure."""
-    busy = [procs.start([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    cpu = {min(os.sched_getaffinity(0))}
+    one_cpu = lambda: os.sched_setaffinity(0, cpu)  # the children inherit it
     out = tmp_path / "run"
+    p = procs.start(_run_args(LKS, out, 100, "run.duration=2", "output.window=[1.0, 2.0]"), preexec_fn=one_cpu)
+    _wait_round(p, out, 1)  # the team is up: then the busy processes beside it
+    busy = [procs.start([sys.executable, "-c", "while True: pass"], preexec_fn=one_cpu) for _ in range(2)]
     try:
-        p = procs.start(_run_args(LKS, out, 100, "run.duration=2", "output.window=[1.0, 2.0]"))
         _, se = p.communicate(timeout=90)
     finally:
         for b in busy:
