@@ -9,8 +9,8 @@ is what it addressed to this receiver in the run (replayed as recorded). A resta
 (a second incarnation in the record) starts from a fresh estimator at its first recorded
 round. With the scenario of the run the estimates equal the run's bit for bit.
 
-The replay runs up to the last complete round: the last round recorded when the run
-completed, else the last round every agent's record reached (a writer killed mid-run
+The replay runs up to the last complete round: the run's last round when it completed,
+else the last round every agent's record reached (a writer killed mid-run
 leaves a record cut at some round); it stops earlier, with ``complete: false``, at the
 first round that needs a payload the record does not hold.
 """
@@ -78,13 +78,14 @@ def _steps(exp: Experiment, record: dict[int, list[Incarnation]]) -> dict[int, l
     return out
 
 
-def last_complete_round(record: dict[int, list[Incarnation]], completed: bool) -> int:
-    """The last round the replay runs: the last recorded (a completed run), else the last
-    that every agent's record reached."""
+def last_complete_round(exp: Experiment, record: dict[int, list[Incarnation]], completed: bool) -> int:
+    """The last round the replay runs: the run's last (a completed run: an agent that
+    skipped the final rounds has no step there), else the last that every agent's record
+    reached."""
+    if completed:
+        return exp.n_rounds
     ends = [int(inc.k[-1]) for incs in record.values() for inc in incs[-1:] if len(inc.k)]
-    if not ends:
-        return -1
-    return max(ends) if completed else min(ends)
+    return min(min(ends), exp.n_rounds) if ends else -1
 
 
 def replay(exp: Experiment, record: dict[int, list[Incarnation]], *, completed: bool = True,
@@ -99,7 +100,7 @@ def replay(exp: Experiment, record: dict[int, list[Incarnation]], *, completed: 
     process, is absent from the run's metrics): within its rounds, an agent-round is in
     the replay's metrics only where it is in the run's."""
     N, n = exp.N, exp.n
-    last = min(last_complete_round(record, completed), exp.n_rounds)
+    last = last_complete_round(exp, record, completed)
     steps = _steps(exp, record)
     ests = [exp.make_estimator(i) for i in range(N)]
     byz = set(exp.byzantine)
