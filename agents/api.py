@@ -63,7 +63,7 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
              progress: bool = False, save_estimates: bool = False, agents_per_process: int = 1,
              dashboard: Any = None, on_urls: Callable[[dict[str, str]], None] | None = None,
              while_serving: Callable[[dict[str, Any] | None], None] | None = None,
-             say: Callable[[str], None] | None = None) -> RunResult:
+             say: Callable[[str], None] | None = None, deliveries: bool = True) -> RunResult:
     """Run ``exp`` as a team of processes over Zenoh on this machine (``rse run`` is a shell
     over this function): plant, monitor and one process per agent (``agents_per_process``:
     that many agents share a process). Lockstep results equal :func:`simulate`'s.
@@ -73,7 +73,8 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
     unless a router is used). Hooks: ``dashboard`` the monitor's
     :class:`~agents.dashboard.DashboardOptions`, ``on_urls(urls)`` once it serves them,
     ``while_serving(summary)`` after the run while a served viewer is still up, ``say(line)``
-    for the launcher's one-line notes (default: silent).
+    for the launcher's one-line notes (default: silent). ``deliveries``: every agent records
+    what it held at each step (``rse replay``; off only to measure what the record costs).
 
     Returns when the team has finished (``result.leaves`` lists the members that left
     during the run); raises :class:`~estimation.errors.RSEError` naming the failed process
@@ -82,20 +83,19 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
     from agents.net.exits import EXIT_INTERRUPTED
     from estimation.errors import RSEError, ScenarioError
 
-    from .net.launcher import launch
+    from .net.launcher import Hooks, launch
     from .net.protocol import RunConfig
     from .rundir import default_run_dir
 
     try:
         cfg = RunConfig(mode=mode, rate=rate, deadline=deadline, startup_timeout=startup_timeout,
-                        save_estimates=save_estimates, warmup=warmup)
+                        save_estimates=save_estimates, warmup=warmup, deliveries=deliveries)
     except ValueError as exc:
         raise ScenarioError(str(exc)) from None
     run_dir = Path(out) if out is not None else default_run_dir(exp.scenario.run.name)
-    res = launch(Path(exp.source), exp.overrides, None, run_dir, cfg, connect=tuple(connect), progress=progress,
-                 run_id=run_id, exp=exp, frozen=exp.frozen, dashboard=dashboard, show_urls=on_urls,
-                 while_serving=while_serving, router=router, secure=Path(secure) if secure is not None else None,
-                 say=say or (lambda m: None), agents_per_process=agents_per_process)
+    hooks = Hooks(say=say or (lambda m: None), progress=progress, show_urls=on_urls, while_serving=while_serving)
+    res = launch(exp, run_dir, cfg, run_id=run_id, connect=tuple(connect), router=router, dashboard=dashboard,
+                 secure=Path(secure) if secure is not None else None, agents_per_process=agents_per_process, hooks=hooks)
     if res.status == EXIT_INTERRUPTED:
         raise KeyboardInterrupt
     if res.status != 0 or res.summary is None:

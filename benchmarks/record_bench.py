@@ -35,21 +35,20 @@ SCENARIO = ROOT / "scenarios" / "lee_kim_shim.toml"
 
 def realtime_run(duration: float, rate: float, deliveries: bool) -> dict[str, Any]:
     """One realtime team: agent CPU seconds per round and the record's bytes per agent-round."""
-    from agents.api import load_experiment
+    from agents.api import load_experiment, run_team
     from agents.deliveries import record_bytes
-    from agents.net.launcher import launch
-    from agents.net.protocol import RunConfig
+    from estimation.errors import RSEError
 
     ov = (f"run.duration={duration}", "expect=[]", f"output.window=[0.0, {duration}]")
-    exp, frozen = load_experiment(SCENARIO, ov, None)
+    exp, _ = load_experiment(SCENARIO, ov, None)
     with tempfile.TemporaryDirectory(prefix="rse-record-bench-") as tmp:
         run_dir = Path(tmp) / "run"
-        res = launch(SCENARIO, ov, None, run_dir, RunConfig(mode="realtime", rate=rate, deliveries=deliveries),
-                     progress=False, exp=exp, frozen=frozen, say=lambda msg: None)
-        if res.status != 0 or res.summary is None:
-            raise BenchmarkError("rse run failed: " + ("; ".join(res.failures) or f"exit status {res.status}"))
+        try:
+            summary = run_team(exp, out=run_dir, mode="realtime", rate=rate, deliveries=deliveries).summary()
+        except RSEError as exc:
+            raise BenchmarkError(f"rse run failed: {exc}") from None
         size, agent_rounds = record_bytes(run_dir) if deliveries else (0, 0)
-    agents = [p for who, p in res.summary["processes"].items() if who.startswith("agent")]
+    agents = [p for who, p in summary["processes"].items() if who.startswith("agent")]
     rounds = sum(p["rounds"] for p in agents)
     return {"cpu_per_round_s": sum(p["cpu_s"] for p in agents) / rounds, "rounds": rounds,
             "skipped": sum(p.get("skipped", 0) for p in agents),

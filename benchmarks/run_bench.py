@@ -65,26 +65,22 @@ def measure_run(processes: int, rounds: int, *, deadline: float = 2.0, skeleton:
     BenchmarkError
         If the run fails or writes no performance figures.
     """
-    from agents.api import load_experiment
-    from agents.net.launcher import launch
-    from agents.net.protocol import RunConfig
+    from agents.api import load_experiment, run_team
+    from estimation.errors import RSEError
 
     overrides = team_overrides(processes, rounds)
-    exp, frozen = load_experiment(SCENARIO, overrides, None)
+    exp, _ = load_experiment(SCENARIO, overrides, None)
     if exp.N != processes:
         raise BenchmarkError(f"mitra_cells.toml with {' '.join(overrides[:2])} has {exp.N} agents, expected {processes}")
     with tempfile.TemporaryDirectory(prefix="rse-benchmarks-") as tmp:
-        res = launch(SCENARIO, overrides, None, Path(tmp) / "run", RunConfig(deadline=deadline), progress=False,
-                     exp=exp, frozen=frozen, say=lambda msg: None)
-    if res.status == 130:  # the launcher caught Ctrl-C / SIGTERM and stopped the team: stop the suite too
-        raise KeyboardInterrupt
-    if res.status != 0 or res.summary is None:
-        raise BenchmarkError(f"rse run with {processes} agent processes failed: "
-                             + ("; ".join(res.failures) or f"exit status {res.status}"))
-    perf = res.summary.get("performance") or {}
+        try:  # Ctrl-C / SIGTERM stops the team and raises KeyboardInterrupt: the suite stops too
+            summary = run_team(exp, out=Path(tmp) / "run", deadline=deadline).summary()
+        except RSEError as exc:
+            raise BenchmarkError(f"rse run with {processes} agent processes failed: {exc}") from None
+    perf = summary.get("performance") or {}
     if not perf.get("rounds_per_s"):
         raise BenchmarkError(f"rse run with {processes} agent processes reported no rounds/s")
-    procs = res.summary.get("processes", {})
+    procs = summary.get("processes", {})
     rss = [rec["maxrss_mb"] for who, rec in procs.items() if who.startswith("agent") and "maxrss_mb" in rec]
     if len(rss) != processes:
         raise BenchmarkError(f"rse run with {processes} agent processes: peak RSS reported by {len(rss)} of them")

@@ -10,8 +10,6 @@ from pathlib import Path
 
 import click
 
-from estimation.errors import RSEError
-
 from .. import api
 from .common import handle_errors, load_experiment, scenario_options
 
@@ -99,15 +97,14 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
 
     from transport.event_loop import loop_name
 
+    from .. import api
     from ..console import out as console
-    from ..net.launcher import launch
-    from ..net.protocol import RunConfig
     from ..net.startup import prestart
 
     t_cmd = _command_started()
     prestart()
     # built once: launch gives every run fresh nodes, channel and slices from it
-    exp, frozen = load_experiment(scenario, overrides, seed)
+    exp, _ = load_experiment(scenario, overrides, seed)
     n_proc = -(-exp.N // agents_per_process) + 2
     sizes = run_skeleton = None
     if skeleton:
@@ -119,15 +116,12 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
     for rep in range(repeat):
         t_launch = t_cmd if rep == 0 else time.time()
         with tempfile.TemporaryDirectory(prefix="rse-bench-") as tmp:
-            res = launch(scenario, overrides, seed, Path(tmp) / "run",
-                         RunConfig(deadline=deadline, startup_timeout=startup_timeout), progress=False,
-                         exp=exp, frozen=frozen, say=lambda m: None, agents_per_process=agents_per_process)
-        if res.status != 0 or res.summary is None:
-            raise RSEError("; ".join(res.failures) or "the benchmark run failed")
-        perf = res.summary["performance"]
+            summary = api.run_team(exp, out=Path(tmp) / "run", deadline=deadline, startup_timeout=startup_timeout,
+                                   agents_per_process=agents_per_process).summary()
+        perf = summary["performance"]
         rate = perf["rounds_per_s"]
         if rep == 0:
-            procs = res.summary["processes"]
+            procs = summary["processes"]
             console.print(f"scenario {exp.scenario.run.name}: {exp.N} agents, {perf['rounds']} rounds, n = {exp.n}, "
                           f"{n_proc} processes" + (f" ({agents_per_process} agents per process)"
                                                    if agents_per_process > 1 else ""))

@@ -22,14 +22,13 @@ killed agent can be restarted by hand against the running team::
 
     rse agent --id 3 --team RUN_DIR/team.json
 
-Supervision: the monitor reports progress over a pipe (rounds/s and the worst current
-error on the progress bar, joins and leaves); the launcher polls its children. An agent
-that is killed by a signal from outside is a *leave*: the team goes on without it. A
-process that exits with an error status is a *failure*: named in the final message, and
-the exit status is non-zero; a failed plant or monitor stops the run. On SIGINT or
-SIGTERM every child gets SIGTERM, then SIGKILL 1 s later; the launcher joins all of them
-(no orphan), and children also die with the launcher (``PR_SET_PDEATHSIG`` plus a parent
-watch).
+:func:`launch` composes three parts: the team plan (:mod:`agents.net.plan`: which processes,
+where each listens, their sessions and identities), the children's specs and the run
+directory's first files (:func:`_child_specs`), and the supervisor
+(:mod:`agents.net.supervisor`: starting, the monitor's progress pipe, exits, leaves and
+failures, signals). A process that exits with an error status is a *failure*: named in the
+final message, and the exit status is non-zero; an agent or the monitor killed from outside
+is a *leave*. Children also die with the launcher (``PR_SET_PDEATHSIG`` plus a parent watch).
 """
 
 from __future__ import annotations
@@ -37,20 +36,21 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import signal
-import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from agents.net.exits import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
-from estimation.errors import RSEError, ScenarioError
+from estimation.errors import ScenarioError
 
-from .child import ChildSpec, child_entry, group_label
+from .child import ChildSpec
+from .plan import TeamPlan, plan_team
 from .protocol import RunConfig
 from .recording import complete_run_dir
-from .startup import PEER_RETRY_MS, agent_groups, bare_main, child_env, context, peer_links
+from .startup import PEER_RETRY_MS, child_env
+from .supervisor import Outcome, Supervisor
 
 log = logging.getLogger("rse.net")
 
@@ -146,355 +146,113 @@ class LaunchResult:
     leaves: list[str]
 
 
-def _distinct_ports(n: int) -> list[int]:
-    from transport.zenoh_session import free_tcp_port
+@dataclass(frozen=True)
+class Hooks:
+    """What the caller sees of a running team: ``say(line)`` the one-line notes (joins,
+    leaves; None: the console's stderr), the progress bar, ``show_urls(urls)`` once the
+    monitor serves the dashboard, ``while_serving(summary)`` after the run while a served
+    viewer is still up (the monitor stops when it returns)."""
 
-    ports: list[int] = []
-    while len(ports) < n:
-        p = free_tcp_port()
-        if p not in ports:
-            ports.append(p)
-    return ports
-
-
-def _describe_exit(code: int | None) -> str:
-    if code is None:
-        return "still running"
-    if code < 0:
-        try:
-            return f"killed by {signal.Signals(-code).name}"
-        except ValueError:
-            return f"killed by signal {-code}"
-    return f"exit status {code}"
+    say: Callable[[str], None] | None = None
+    progress: bool = True
+    show_urls: Callable[[dict[str, str]], None] | None = None
+    while_serving: Callable[[dict[str, Any] | None], None] | None = None
 
 
-def launch(
-    scenario: Path,
-    overrides: tuple[str, ...],
-    seed: int | None,
-    run_dir: Path,
-    cfg: RunConfig,
-    *,
-    connect: tuple[str, ...] = (),
-    progress: bool = True,
-    run_id: str | None = None,
-    exp: Any = None,
-    frozen: dict | None = None,
-    say: Any = None,
-    dashboard: Any = None,
-    show_urls: Any = None,
-    while_serving: Any = None,
-    router: bool = False,
-    secure: Path | None = None,
-    agents_per_process: int = 1,
-) -> LaunchResult:
-    """Start and supervise the team; returns when every child has exited.
-
-    agents_per_process : agents hosted by each agent process (one Zenoh session, one
-        asyncio task and node per agent, the same keys and messages); 1: one process each
-
-    router : start a Zenoh router child on a free loopback port; every process is its client
-    secure : a directory of ``rse certs``: mutual TLS, each process with its own identity;
-        peers with their own ingress rules, or clients of the router of ``connect`` / ``router``
-
-    dashboard : the monitor's :class:`agents.dashboard.DashboardOptions` (None: no Rerun output)
-    show_urls : called with the dashboard's URLs once the monitor serves them
-    while_serving : with ``dashboard.serve_web``, called with the summary once the run is
-        over while the monitor still serves the recording; the monitor stops when it returns
+def launch(exp: Any, run_dir: Path, cfg: RunConfig, *, run_id: str | None = None, connect: tuple[str, ...] = (),
+           router: bool = False, secure: Path | None = None, agents_per_process: int = 1, dashboard: Any = None,
+           hooks: Hooks = Hooks()) -> LaunchResult:
+    """Start and supervise a team for the built experiment ``exp``; returns when every child
+    has exited. It composes the team plan (:func:`agents.net.plan.plan_team`: ``connect``,
+    ``router``, ``secure``, ``agents_per_process``), the run directory's first files and the
+    children's specs (:func:`_child_specs`; ``dashboard`` the monitor's
+    :class:`agents.dashboard.DashboardOptions`), the supervisor
+    (:class:`agents.net.supervisor.Supervisor`) and the completed run directory (:func:`_finish`).
     """
     from agents.console import err, round_progress
-    from agents.rundir import write_design, write_json, write_manifest
-    from transport.zenoh_session import SessionOptions, tcp_endpoint
-
-    say = say or (lambda msg: err.print(msg, soft_wrap=True))
-    if exp is None:
-        from agents.runs import load_experiment
-
-        exp, frozen = load_experiment(scenario, overrides, seed)
+    from agents.rundir import write_json
     from agents.simulate import make_channel, make_nodes
 
-    from .slices import agent_slices, plant_slice, write_slices
+    from .slices import agent_slices
 
-    # the nodes built once, as the simulator does; each agent gets its own slice
-    slices = agent_slices(exp, make_nodes(exp, make_channel(exp)))
-    run_id = run_id or safe_run_id(exp.scenario.run.name)
+    say = hooks.say or (lambda msg: err.print(msg, soft_wrap=True))
+    slices = agent_slices(exp, make_nodes(exp, make_channel(exp)))  # the nodes built once, as the simulator does
+    plan = plan_team(exp, slices, run_id=run_id or safe_run_id(exp.scenario.run.name),
+                     agents_per_process=agents_per_process, connect=connect, router=router, secure=secure)
     run_dir.mkdir(parents=True, exist_ok=True)
-    groups = agent_groups(exp.agent_ids, agents_per_process)
-    group_of = {group_label(g): g for g in groups}
-    host = {a: nm for nm, g in group_of.items() for a in g}
-    names = ["plant", "monitor"] + list(group_of)
-    tls: dict[str, Any] = {nm: None for nm in names}
-    if secure is not None and agents_per_process > 1:
-        raise ScenarioError("--secure gives each agent its own identity: it cannot share a process (--agents-per-process)")
-    acl = None
-    if secure is not None:
-        from .secure_team import identities, peer_acl
+    team = Team(plan.run_id, plan.endpoints, plan.transport, plan.connect, str(exp.source), tuple(exp.overrides), None,
+                cfg, router=plan.router, secure=str(Path(secure).resolve()) if secure is not None else None)
+    sup = Supervisor(run_dir, exp.n_rounds, plan.run_id, say=say, show_urls=hooks.show_urls,
+                     while_serving=hooks.while_serving)
+    base = dict(scenario=team.scenario, overrides=team.overrides, seed=None, run_id=plan.run_id, cfg=cfg, watch_parent=True)
+    specs = _child_specs(run_dir, exp, plan, cfg, slices, base=base, conn=sup.send_conn, dashboard=dashboard)
 
-        tls = identities(secure, names, router=router)
-        acl = None if router or connect else peer_acl(secure, run_id, exp.agent_ids)
-    router_ep = None
-    if router:
-        if connect:
-            raise ScenarioError("--router starts a router for the team: leave out --connect (or use --connect alone)")
-        from transport.secure import secure_endpoint
-        from transport.zenoh_session import free_tcp_port
+    def started(pids: dict[str, int]) -> None:
+        team.pids = pids
+        write_json(run_dir / "team.json", team.as_dict())
+        say(f"run {plan.run_id}: {exp.N} agents, {cfg.mode}"
+            + (f" at {cfg.rate:g} Hz" if cfg.rate else "") + f"; team file {run_dir / 'team.json'}")
 
-        router_ep = tcp_endpoint(free_tcp_port())
-        if secure is not None:
-            router_ep = secure_endpoint(router_ep)
-        connect = (router_ep,)
-    if connect:
-        endpoints: dict[str, str] = {}
-        sessions = {nm: SessionOptions.client(connect, tls=tls[nm]) for nm in names}
-    else:
-        ports = _distinct_ports(len(names))
-        endpoints = {nm: tcp_endpoint(p) for nm, p in zip(names, ports)}
-        if secure is not None:  # secure peer-to-peer: TLS links, each peer's own ingress rules
-            endpoints = {nm: ep.replace("tcp/", "tls/", 1) for nm, ep in endpoints.items()}
-        # each process linked to the ones it talks to (not a full mesh): it connects to
-        # those that listen before it, the later ones connect to it; the monitor, which
-        # reads the whole experiment first, listens last (it connects to all of its links)
-        links = peer_links(slices, host)
-        order = {nm: i for i, nm in enumerate([nm for nm in names if nm != "monitor"] + ["monitor"])}
-        # a session opens at once (scout_delay_ms=0), not after Zenoh's 500 ms wait for a
-        # connect endpoint that is not listening yet: the processes start together, their
-        # links come up in the background, and each waits for the others' liveliness
-        sessions = {nm: SessionOptions(mode="peer", listen=(endpoints[nm],), gossip=False, retry_ms=PEER_RETRY_MS,
-                                       small_links=True, scout_delay_ms=0, tls=tls[nm], acl=acl,
-                                       connect=tuple(endpoints[o] for o in names if o in links[nm] and order[o] < order[nm]))
-                    for nm in names}
-    team = Team(run_id, endpoints, "client" if connect else "peer", tuple(connect), str(scenario), tuple(overrides), seed, cfg,
-                router=router_ep, secure=str(Path(secure).resolve()) if secure is not None else None)
-    write_manifest(run_dir, exp, frozen or {}, driver="run", run_id=run_id,
-                   extra={"mode": cfg.mode, "rate": cfg.rate, "deadline": cfg.deadline, "endpoints": endpoints,
-                          "connect": list(connect), "router": router_ep, "secure": secure is not None})
-    write_design(run_dir, exp)
+    router_args = (plan.router, plan.tls.get("router"), {"agent_ids": tuple(exp.agent_ids), "run_id": plan.run_id})
+    with round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=hooks.progress) as update:
+        out = sup.run(specs, router=router_args if plan.router else None, on_started=started, update=update)
+    if not out.pids:  # interrupted while the router started: nothing ran
+        return LaunchResult(EXIT_INTERRUPTED, run_dir, plan.run_id, None, out.failures, out.leaves)
+    return _finish(run_dir, exp, plan.run_id, out)
 
-    ctx = context()
-    recv_conn, send_conn = ctx.Pipe(duplex=False)
+
+def _child_specs(run_dir: Path, exp: Any, plan: TeamPlan, cfg: RunConfig, slices: Any, *,
+                 base: dict[str, Any], conn: Any, dashboard: Any) -> dict[str, ChildSpec]:
+    """Write the run directory's first files (``manifest.json``, ``design.json``) and what the
+    children read (``team/``: the pickled experiment for the monitor, the plant's slice, one
+    slice file per agent process), and return each process's :class:`ChildSpec`."""
     import pickle
 
-    base = dict(scenario=str(scenario), overrides=tuple(overrides), seed=seed, run_id=run_id, cfg=cfg, watch_parent=True,
-                experiment=pickle.dumps(exp))
+    from agents.rundir import write_design, write_manifest
+
+    from .slices import plant_slice, write_slices
+
+    write_manifest(run_dir, exp, exp.frozen or {}, driver="run", run_id=plan.run_id,
+                   extra={"mode": cfg.mode, "rate": cfg.rate, "deadline": cfg.deadline, "endpoints": plan.endpoints,
+                          "connect": list(plan.connect), "router": plan.router, "secure": plan.secure is not None})
+    write_design(run_dir, exp)
     cache = run_dir / "team"
     cache.mkdir(exist_ok=True)
-    (cache / "experiment.pkl").write_bytes(base["experiment"])
-    base["experiment"] = str((cache / "experiment.pkl").resolve())
+    (cache / "experiment.pkl").write_bytes(pickle.dumps(exp))
     child_env()
     plant_pkl = cache / "plant.pkl"  # the plant's slice: no scenario schema in the plant process
     plant_pkl.write_bytes(pickle.dumps(plant_slice(exp), protocol=pickle.HIGHEST_PROTOCOL))
+    sessions = plan.sessions
     specs = {
-        "plant": ChildSpec(role="plant", session=sessions["plant"], **{**base, "experiment": str(plant_pkl.resolve())}),
-        "monitor": ChildSpec(role="monitor", session=sessions["monitor"], out_dir=str(run_dir), conn=send_conn,
-                             dashboard=dashboard, **base),
+        "plant": ChildSpec(role="plant", session=sessions["plant"], experiment=str(plant_pkl.resolve()), **base),
+        "monitor": ChildSpec(role="monitor", session=sessions["monitor"], out_dir=str(run_dir), conn=conn,
+                             dashboard=dashboard, experiment=str((cache / "experiment.pkl").resolve()), **base),
     }
     # each agent reads its slice (as does `rse agent --team`, for a fast rejoin), not the experiment
-    paths = write_slices(cache, slices, groups)  # one file per agent process
-    agent_base = {k: v for k, v in base.items() if k != "experiment"} | ({"out_dir": str(run_dir)} if cfg.deliveries else {})
-    for nm, g in group_of.items():
+    paths = write_slices(cache, slices, list(plan.groups.values()))  # one file per agent process
+    agent_base = base | ({"out_dir": str(run_dir)} if cfg.deliveries else {})
+    for nm, g in plan.groups.items():
         if len(g) == 1:
             specs[nm] = ChildSpec(role="agent", agent_id=g[0], session=sessions[nm], node=str(paths[g[0]]), **agent_base)
         else:
             specs[nm] = ChildSpec(role="agent", agent_ids=g, nodes=(str(paths[g[0]]),), session=sessions[nm],
                                   **agent_base)
-    procs: dict[str, Any] = {}
-    failures: list[str] = []
-    leaves: list[str] = []
-    noted: set[str] = set()
-    stopping: list[int] = []
-    prev_handlers: dict[int, Any] = {}
-    serving = False
+    return specs
 
-    def on_signal(signum: int, frame: Any) -> None:
-        stopping.append(signum)
 
-    in_main = _is_main_thread()
-    if in_main:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            prev_handlers[sig] = signal.signal(sig, on_signal)
-    status = EXIT_OK
-    router_proc = None
-    plant_failed: str | None = None
-    try:
-        if router_ep is not None:
-            router_proc = _start_router(ctx, router_ep, tls.get("router"), exp.agent_ids, run_id, stopping)
-            if router_proc is None:  # interrupted while it started
-                return LaunchResult(EXIT_INTERRUPTED, run_dir, run_id, None, failures, leaves)
-        for name in ["monitor", *(nm for nm in names if nm != "monitor")]:  # the slowest to start first
-            p = ctx.Process(target=child_entry, args=(specs[name],), name=f"rse-{name.replace(' ', '-')}", daemon=True)
-            with bare_main():
-                p.start()
-            procs[name] = p
-        send_conn.close()  # the monitor holds the writing end now
-        team.pids = {nm: p.pid for nm, p in procs.items()}
-        if router_proc is not None:
-            team.pids["router"] = router_proc.pid
-        write_json(run_dir / "team.json", team.as_dict())
-        say(f"run {run_id}: {exp.N} agents, {cfg.mode}"
-            + (f" at {cfg.rate:g} Hz" if cfg.rate else "") + f"; team file {run_dir / 'team.json'}")
-        status_path = run_dir / "status.json"
-        last_status = 0.0
-        monitor_done_at: float | None = None
-        k_now, worst = -1, float("nan")
-        with round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=progress) as update:
-            while True:
-                if stopping:
-                    break
-                try:
-                    ready = recv_conn.poll(0.1)
-                except (OSError, EOFError):
-                    ready = False
-                while ready:
-                    try:
-                        kind, data = recv_conn.recv()
-                    except (EOFError, OSError):
-                        break
-                    if kind == "round":
-                        k_now, worst = data
-                        update(k_now, worst)
-                    elif kind == "urls" and show_urls is not None:
-                        show_urls(data)
-                    elif kind == "serving":
-                        serving = True
-                        noted.add("monitor")
-                        monitor_done_at = monitor_done_at or time.monotonic()
-                    elif (kind == "member" and data["role"] == "agent" and 0 < data["round"]
-                          and k_now < exp.n_rounds):  # not the processes leaving after the last round
-                        say(f"agent {data['id']} {'joined' if data['event'] == 'join' else 'left'} (round {data['round']})")
-                    try:
-                        ready = recv_conn.poll(0)
-                    except (OSError, EOFError):
-                        ready = False
-                now = time.monotonic()
-                if now - last_status > 0.5:
-                    last_status = now
-                    with contextlib.suppress(OSError):
-                        write_json(status_path, {"run_id": run_id, "round": k_now, "worst_error_inf": worst, "time": time.time()})
-                fatal = False
-                for name, p in procs.items():
-                    if name in noted or p.exitcode is None:
-                        continue
-                    noted.add(name)
-                    code = p.exitcode
-                    if code == 0:
-                        if name == "monitor":
-                            monitor_done_at = now
-                        continue
-                    if name.startswith("agent") and code < 0 and monitor_done_at is None:
-                        leaves.append(f"{name} ({_describe_exit(code)})")
-                        say(f"{name} was {_describe_exit(code)}; the team goes on without it")
-                        continue
-                    if name == "monitor" and code < 0:
-                        # the monitor only records: the team goes on, and a monitor restarted
-                        # against the team rejoins (the rounds in between are not recorded)
-                        leaves.append(f"{name} ({_describe_exit(code)})")
-                        say(f"the monitor was {_describe_exit(code)}; the team goes on without it "
-                            f"(rejoin: rse monitor --team {run_dir / 'team.json'})")
-                        continue
-                    failures.append(f"{name} failed ({_describe_exit(code)})")
-                    if name == "plant":  # the plant is the physics: the run ends
-                        fatal = True
-                        plant_failed = f"the plant failed ({_describe_exit(code)})"
-                if router_proc is not None and router_proc.exitcode is not None:
-                    failures.append(f"the router failed ({_describe_exit(router_proc.exitcode)})")
-                    fatal = True
-                if fatal:
-                    break
-                if all(p.exitcode is not None for nm, p in procs.items() if not (serving and nm == "monitor")):
-                    if serving and while_serving is not None and not failures:
-                        summary = None
-                        with contextlib.suppress(OSError, ValueError):
-                            summary = json.loads((run_dir / "summary.json").read_text())
-                        while_serving(summary)
-                    break
-                if monitor_done_at is not None and now - monitor_done_at > END_GRACE_S:
-                    late = [nm for nm, p in procs.items() if p.exitcode is None and not (serving and nm == "monitor")]
-                    failures.append(f"{', '.join(late)} did not stop after the end of the run")
-                    break
-    finally:
-        # the router within the same grace period (it is last: the others leave first)
-        _stop_all(procs if router_proc is None else {**procs, "router": router_proc})
-        if router_proc is not None:
-            with contextlib.suppress(Exception):
-                router_proc.close()
-        for name, p in procs.items():
-            if name not in noted and p.exitcode not in (None, 0) and not stopping:
-                if not (name.startswith("agent") and p.exitcode < 0):
-                    failures.append(f"{name} failed ({_describe_exit(p.exitcode)})")
-        for p in procs.values():
-            with contextlib.suppress(Exception):
-                p.close()
-        for c in (recv_conn, send_conn):
-            with contextlib.suppress(OSError):
-                c.close()
-        if in_main:
-            for sig, h in prev_handlers.items():
-                signal.signal(sig, h)
-    if stopping:
-        status = EXIT_INTERRUPTED
-    elif failures:
-        status = EXIT_FAILED
-    complete_run_dir(run_dir, exp, plant_failed=plant_failed, stopping=bool(stopping), children=set(team.pids.values()))
+def _finish(run_dir: Path, exp: Any, run_id: str, out: Outcome) -> LaunchResult:
+    """Complete the run directory after the team ended and decide the exit status."""
+    status = EXIT_INTERRUPTED if out.stopping else (EXIT_FAILED if out.failures else EXIT_OK)
+    complete_run_dir(run_dir, exp, plant_failed=out.plant_failed, stopping=out.stopping, children=set(out.pids.values()))
     summary = None
     with contextlib.suppress(OSError, ValueError):
         summary = json.loads((run_dir / "summary.json").read_text())
     if summary is None and status == EXIT_OK:
-        failures.append("the monitor wrote no summary")
+        out.failures.append("the monitor wrote no summary")
         status = EXIT_FAILED
     elif summary is not None and summary.get("complete") is False and status == EXIT_OK:
         # the team finished, but its record did not: no monitor ran at the end
-        failures.append(f"the run's record is incomplete: {summary.get('reason')} (rounds recorded up to "
-                        f"{summary.get('last_round')}; {run_dir / 'metrics.parquet'})")
+        out.failures.append(f"the run's record is incomplete: {summary.get('reason')} (rounds recorded up to "
+                            f"{summary.get('last_round')}; {run_dir / 'metrics.parquet'})")
         status = EXIT_FAILED
-    return LaunchResult(status, run_dir, run_id, summary, failures, leaves)
-
-
-ROUTER_START_S = 15.0  # how long the router child may take to open
-
-
-def _start_router(ctx: Any, endpoint: str, tls: Any, agent_ids: Any, run_id: str, stopping: list[int]) -> Any:
-    """Start the router child of ``rse run --router`` and wait until its session is open.
-
-    Returns the process (``None`` if a signal arrived meanwhile); raises
-    :class:`RSEError` if it exits or does not open within :data:`ROUTER_START_S`.
-    """
-    ready = ctx.Event()
-    args = {"listen": (endpoint,), "secure": tls, "agent_ids": tuple(agent_ids), "run_id": run_id}
-    from .router import router_entry
-
-    p = ctx.Process(target=router_entry, args=(args, ready), name="rse-router", daemon=True)
-    with bare_main():
-        p.start()
-    end = time.monotonic() + ROUTER_START_S
-    while not ready.wait(0.05):
-        if stopping or p.exitcode is not None or time.monotonic() > end:
-            why = None if stopping else ("it exited with " + _describe_exit(p.exitcode) if p.exitcode is not None
-                                         else f"it did not open within {ROUTER_START_S:g} s")
-            _stop_all({"router": p})
-            if why is None:
-                return None
-            raise RSEError(f"the router on {endpoint} did not start: {why}")
-    return p
-
-
-def _is_main_thread() -> bool:
-    import threading
-
-    return threading.current_thread() is threading.main_thread()
-
-
-def _stop_all(procs: dict[str, Any]) -> None:
-    """SIGTERM every live child, SIGKILL what is left after STOP_GRACE_S, join all."""
-    alive = [p for p in procs.values() if p.exitcode is None]
-    for p in alive:
-        with contextlib.suppress(Exception):
-            p.terminate()
-    end = time.monotonic() + STOP_GRACE_S
-    for p in alive:
-        p.join(max(0.0, end - time.monotonic()))
-    for p in alive:
-        if p.exitcode is None:
-            with contextlib.suppress(Exception):
-                p.kill()
-    for p in procs.values():
-        p.join(1.0)
+    return LaunchResult(status, run_dir, run_id, summary, out.failures, out.leaves)
