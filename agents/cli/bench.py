@@ -10,6 +10,8 @@ from pathlib import Path
 
 import click
 
+from estimation.errors import RSEError
+
 from .. import api
 from .common import handle_errors, load_experiment, scenario_options
 
@@ -97,7 +99,6 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
 
     from transport.event_loop import loop_name
 
-    from .. import api
     from ..console import out as console
     from ..net.startup import prestart
 
@@ -143,7 +144,7 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
                           + (f", minimal skeleton {mini:,.1f}, full pattern {full:,.1f}, runtime / minimal "
                              f"{rate / mini:.0%}, / full pattern {rate / full:.0%}" if mini and full else ""))
         if secure is not None:
-            secured.append(_secure_run(console, scenario, overrides, seed, exp, frozen, secure, deadline,
+            secured.append(_secure_run(console, exp, secure, deadline,
                                        startup_timeout, rate, rep, repeat))
     if repeat > 1:
         med = statistics.median
@@ -165,22 +166,20 @@ def bench_run(scenario: Path, overrides: tuple[str, ...], seed: int | None, dead
     console.print(_memory_line(procs, agents_per_process))
 
 
-def _secure_run(console, scenario: Path, overrides: tuple[str, ...], seed: int | None, exp, frozen, secure: Path,
-                deadline: float, startup_timeout: float, plain: float, rep: int, repeat: int) -> tuple[float, float]:
+def _secure_run(console, exp, secure: Path, deadline: float, startup_timeout: float, plain: float, rep: int,
+                repeat: int) -> tuple[float, float]:
     """One lockstep run of the team as secure peers; prints its line, returns (rounds/s, secure / plain)."""
     import time
 
-    from ..net.launcher import launch
-    from ..net.protocol import RunConfig
 
     t0 = time.time()
     with tempfile.TemporaryDirectory(prefix="rse-bench-") as tmp:
-        res = launch(scenario, overrides, seed, Path(tmp) / "run", RunConfig(deadline=deadline,
-                     startup_timeout=startup_timeout), progress=False, exp=exp, frozen=frozen, say=lambda m: None,
-                     secure=secure)
-    if res.status != 0 or res.summary is None:
-        raise RSEError("secure run: " + ("; ".join(res.failures) or "the benchmark run failed"))
-    perf = res.summary["performance"]
+        try:
+            summary = api.run_team(exp, out=Path(tmp) / "run", deadline=deadline, startup_timeout=startup_timeout,
+                                   secure=secure).summary()
+        except RSEError as exc:
+            raise RSEError(f"secure run: {exc}") from None
+    perf = summary["performance"]
     rate = perf["rounds_per_s"]
     start = f"{perf['round0_at'] - t0:.2f} s" if perf.get("round0_at") else "n/a"
     console.print(f"{'secure peers' if repeat == 1 else f'run {rep + 1} of {repeat}, secure peers'}: "
