@@ -12,7 +12,7 @@ process pool) and with Dask (a ``LocalCluster`` of the same number of worker pro
 the path of ``rse sweep --cluster``), and the ratio of their throughputs is a figure: on
 a loaded machine only the ratio measured in one session means much.
 
-``python -m benchmarks.sweep_bench`` measures the README's sweep (``drop_p=0:0.9:0.05``,
+``python -m benchmarks.sweep_bench`` measures the 380-run sweep (``drop_p=0:0.9:0.05``,
 20 seeds, 300 rounds, its ``[expect]`` bounds kept, 2 jobs: 380 runs) both ways.
 """
 
@@ -94,7 +94,7 @@ def sweep_figures(m: dict[str, Any], pool: dict[str, Any] | None = None) -> list
 
 
 def main() -> None:
-    """The README's 380-run sweep, with the process pool and with Dask; prints both and the ratio."""
+    """The 380-run sweep, with the process pool and with Dask; prints both and the ratio."""
     import argparse
 
     from agents.api import pin_blas_threads
