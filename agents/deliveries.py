@@ -147,9 +147,9 @@ def read_incarnation(path: Path) -> Incarnation | None:
             ks.append(int(b["k"]))
             ys.append(None if b["y"] is None else np.frombuffer(b["y"], dtype="<f8"))
             st.append(np.frombuffer(b["s"], dtype="<i8"))
+        stamps = np.array(st, dtype=np.int64).reshape(len(ks), len(in_ids))
     except (KeyError, TypeError, ValueError) as exc:
         raise RSEError(f"{path}: a malformed block ({exc})") from None
-    stamps = np.array(st, dtype=np.int64).reshape(len(ks), len(in_ids))
     return Incarnation(int(head["agent"]), in_ids, np.array(ks, dtype=np.int64), ys, stamps, sends, torn)
 
 

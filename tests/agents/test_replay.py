@@ -110,5 +110,10 @@ def test_bad_input_is_one_line(tmp_path):
     (tmp_path / DIR / "agent-0001-000.rec").write_bytes(len(body).to_bytes(4, "little") + body)
     with pytest.raises(RSEError, match="not a delivery record of this version"):
         read_record(tmp_path)
+    # a step block whose stamps do not match the header's in-neighbours
+    head, step = msgpack.packb({"v": 1, "agent": 1, "in": [2, 5]}), msgpack.packb({"k": 0, "y": None, "s": b"\0" * 8})
+    (tmp_path / DIR / "agent-0001-000.rec").write_bytes(b"".join(len(b).to_bytes(4, "little") + b for b in (head, step)))
+    with pytest.raises(RSEError, match="agent-0001-000.rec: a malformed block"):
+        read_record(tmp_path)
     with pytest.raises(ScenarioError, match="not a run directory"):
         rse.replay(tmp_path, out=tmp_path / "rep")
