@@ -53,6 +53,17 @@ def _wait_round(p: subprocess.Popen, out: Path, k: int, timeout: float = 60) -> 
         time.sleep(0.02)
 
 
+def _wait_stepping(p: subprocess.Popen, out: Path, n: int, timeout: float = 60) -> None:
+    """Until ``n`` agents' delivery records hold a step (the team runs; the monitor, which
+    writes status.json, may lag far behind on a loaded machine) or the run is over."""
+    end = time.monotonic() + timeout
+    while p.poll() is None and time.monotonic() < end:
+        recs = list((out / "deliveries").glob("agent-*.rec")) if (out / "deliveries").is_dir() else []
+        if sum(r.stat().st_size > 80 for r in recs) >= n:
+            return
+        time.sleep(0.01)
+
+
 def _replay(run: Path, out: Path, *sets: str) -> dict:
     args = ["replay", str(run), "--out", str(out), "--no-progress", "--no-rerun"]
     for s in sets:
@@ -83,7 +94,8 @@ def _assert_equal(run: Path, rep: Path) -> np.ndarray:
           f"{np.isnan(a).any(axis=2).sum()} NaN agent-rounds in both, {unheard} stepped but unheard by the monitor")
     assert diff == 0.0
     assert not (both.any(axis=2) & ~stepped).any()  # every estimate the monitor had: a recorded step
-    assert unheard <= max(3, stepped.sum() // 200)
+    # measured: 0 on a quiet machine, 26 of 3387 (0.8%) at a load average of 20 on 2 cores
+    assert unheard <= max(3, stepped.sum() // 33)
     return a
 
 
@@ -119,7 +131,7 @@ def test_lee_kim_shim_realtime_with_busy_processes_and_its_linear_counterfactual
     one_cpu = lambda: os.sched_setaffinity(0, cpu)  # the children inherit it
     out = tmp_path / "run"
     p = procs.start(_run_args(LKS, out, 100, "run.duration=2", "output.window=[1.0, 2.0]"), preexec_fn=one_cpu)
-    _wait_round(p, out, 1)  # the team is up: then the busy processes beside it
+    _wait_stepping(p, out, 5)  # the team is up: then the busy processes beside it
     busy = [procs.start([sys.executable, "-c", "while True: pass"], preexec_fn=one_cpu) for _ in range(2)]
     try:
         _, se = p.communicate(timeout=90)
