@@ -19,8 +19,12 @@ Runs go through the public API (:func:`rse.load`, :func:`rse.simulate`,
 
 from __future__ import annotations
 
+import contextlib
 import math
+import signal
+import threading
 import tomllib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -40,6 +44,7 @@ TEAM_DEADLINE = 30.0
 QUICK_FRACTION = 4  # --rse-quick: a quarter of each horizon
 
 _LINES = pytest.StashKey[list[tuple[str, str, str, str]]]()
+_INTERRUPTED = pytest.StashKey[int]()  # the session's exit status, once a signal interrupted a run
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -102,6 +107,25 @@ def _is_ours(exc: BaseException) -> bool:
     return isinstance(exc, RSEError | OSError)
 
 
+@contextlib.contextmanager
+def _sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM interrupts a run as Ctrl-C does (as it does ``rse simulate`` and ``rse run``):
+    the team's processes are stopped and the run directory is completed before pytest ends
+    (pytest's own default for SIGTERM is to die at once, leaving the processes behind)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt("SIGTERM")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 @dataclass
 class _Outcome:
     result: RunResult | None
@@ -158,11 +182,15 @@ class ScenarioFile(pytest.File):
             try:
                 ov = self._overrides()
                 exp = rse.load(self.path, set=ov)
-                if self.config.getoption("rse_driver") == "run":
-                    res = rse.run_team(exp, out=run_dir, deadline=TEAM_DEADLINE)
-                else:
-                    res = rse.simulate(exp, out=run_dir)
+                with _sigterm_interrupts():
+                    if self.config.getoption("rse_driver") == "run":
+                        res = rse.run_team(exp, out=run_dir, deadline=TEAM_DEADLINE)
+                    else:
+                        res = rse.simulate(exp, out=run_dir)
                 self._outcome = _Outcome(res, None, run_dir, ov)
+            except KeyboardInterrupt:
+                self.config.stash[_INTERRUPTED] = pytest.ExitCode.INTERRUPTED
+                raise
             except Exception as exc:  # every item of the file reports it
                 self._outcome = _Outcome(None, exc, run_dir, ov)
         return self._outcome
@@ -258,3 +286,23 @@ def pytest_terminal_summary(terminalreporter: TerminalReporter, exitstatus: int,
     wb = max(len(b) for _, _, b, _ in lines)
     for status, measured, bound, nodeid in lines:
         terminalreporter.write_line(f"{status:<5} {measured:>{w}} {bound:<{wb}}  {nodeid}")
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """After Ctrl-C or SIGTERM stopped a run (its processes stopped, its run directory
+    completed, pytest's report written): exit at once, as the ``rse`` command does, instead
+    of the interpreter's teardown of numpy, scipy and the rest, which takes seconds on a
+    loaded machine (a command ends within 2 s of a signal)."""
+    status = config.stash.get(_INTERRUPTED, None)
+    if status is None:
+        return
+    import atexit
+    import os
+    import sys
+
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    os._exit(int(status))
