@@ -281,11 +281,16 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
         session = _peer_options(lst, others, tls, run_id)
     warn_plain((*session.connect, *(session.listen or ())), tls)
     cfg = _config(mode, rate, deadline, startup_timeout, extra.pop("save_estimates", False), warmup)
-    # validate the scenario here, so that a bad one is exit status 2 with the usual message
+    # built here (a bad scenario is exit status 2 with the usual message) and handed to the
+    # role: the role process reads what it is given, it builds nothing
+    built = None
     if _validate:
-        load_experiment(scenario, overrides, seed)
+        import pickle
+
+        exp, _ = load_experiment(scenario, overrides, seed)
+        built = pickle.dumps(exp)
     return ChildSpec(role=role, scenario=str(scenario), overrides=tuple(overrides), seed=seed, run_id=run_id, cfg=cfg,
-                     session=session, log_level=logging.INFO if verbose else logging.WARNING, **extra)
+                     session=session, log_level=logging.INFO if verbose else logging.WARNING, experiment=built, **extra)
 
 
 def _peer_options(listen: str, connect: tuple[str, ...], tls: Any, run_id: str) -> Any:
@@ -382,10 +387,13 @@ def agent(agent_spec: str, **kw: Any) -> None:
         extra["out_dir"] = str(team if team.is_dir() else team.parent)
     spec = _role_spec("agent", label, _validate=cached is None, **extra, **kw)
     if cached is None:
+        import pickle
+
         from ..middleware import make_channel, make_nodes
         from ..net.slices import agent_slices, dumps_slices
 
-        exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
+        exp = pickle.loads(spec.experiment)  # built by _role_spec
+        spec.experiment = None  # an agent process reads its slice, not the experiment
         missing = [a for a in ids if a not in exp.agent_ids]
         if missing:
             raise ScenarioError(f"--id {', '.join(map(str, missing))}: no such agent; agents are "

@@ -231,16 +231,9 @@ def run_role(spec: ChildSpec) -> int:
     for noisy in ("zenoh", "transport"):
         logging.getLogger(noisy).setLevel(max(level, logging.INFO))
     try:
-        if spec.role == "agent":
-            exp = _agent_slice(spec)  # the agent's own part, not the experiment
-        elif spec.experiment is not None:
-            import pickle
-
-            exp = pickle.loads(_blob(spec.experiment))
-        else:
-            from agents.runs import load_experiment
-
-            exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
+        # what the role was handed: an agent its slice(s), the plant and the monitor the
+        # built experiment (or the plant's slice), pickled or in a file; nothing is built here
+        exp = _agent_slice(spec) if spec.role == "agent" else _experiment(spec)
         log.debug("scenario built")
         prof_dir = os.environ.get("RSE_PROFILE")  # a directory: one cProfile dump per process
         if prof_dir:
@@ -266,38 +259,30 @@ def run_role(spec: ChildSpec) -> int:
         return EXIT_FAILED
 
 
+def _experiment(spec: ChildSpec) -> Any:
+    """The built experiment (or the plant's slice of it) handed to a plant or monitor process."""
+    import pickle
+
+    if spec.experiment is None:
+        raise ScenarioError(f"{spec.label}: no experiment was handed to the process (a bug of its launcher)")
+    return pickle.loads(_blob(spec.experiment))
+
+
 def _agent_slice(spec: ChildSpec) -> Any:
     """The slice of the agent of ``spec`` (a list with several agents)."""
-    from .slices import agent_slice, read_slice, read_slices
+    from .slices import read_slice, read_slices
 
     if spec.agent_ids:
-        if spec.nodes:
-            parts = [p for n in spec.nodes for p in read_slices(n)]
-        else:
-            from agents.runs import load_experiment
-            from agents.simulate import make_channel, make_nodes
-
-            from .slices import agent_slices
-
-            exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
-            missing = sorted(set(spec.agent_ids) - set(exp.agent_ids))
-            if missing:
-                raise ScenarioError(f"no agent {', '.join(map(str, missing))} in this scenario; "
-                                    f"agents are {', '.join(map(str, exp.agent_ids))}")
-            by_id = {s.agent_id: s for s in agent_slices(exp, make_nodes(exp, make_channel(exp)))}
-            parts = [by_id[a] for a in spec.agent_ids]
+        parts = [p for n in spec.nodes for p in read_slices(n)]
         if [p.agent_id for p in parts] != list(spec.agent_ids):
             raise ScenarioError(f"the slices of agents {[p.agent_id for p in parts]} given to agents {list(spec.agent_ids)}")
         return parts
-    if spec.node is not None:
-        part = read_slice(spec.node)
-        if spec.agent_id is not None and part.agent_id != spec.agent_id:
-            raise ScenarioError(f"the slice of agent {part.agent_id} given to agent {spec.agent_id}")
-        return part
-    from agents.runs import load_experiment
-
-    exp, _ = load_experiment(Path(spec.scenario), spec.overrides, spec.seed)
-    return agent_slice(exp, spec.agent_id)
+    if spec.node is None:
+        raise ScenarioError(f"{spec.label}: no slice was handed to the process (a bug of its launcher)")
+    part = read_slice(spec.node)
+    if spec.agent_id is not None and part.agent_id != spec.agent_id:
+        raise ScenarioError(f"the slice of agent {part.agent_id} given to agent {spec.agent_id}")
+    return part
 
 
 def _error(msg: str) -> None:
