@@ -89,15 +89,19 @@ def test_the_plugin_is_found_through_its_entry_point_only(installed):
     assert "estimator: unknown algorithm" in " ".join(res.stderr.split())
 
 
+@pytest.mark.multiprocess
 def test_the_package_own_tests_and_scenario_bounds_pass_against_the_installed_copy(installed, tmp_path):
     """The package's ``pytest`` (its pyproject's testpaths, with ``--rse``): its unit tests
-    and one test per bound of each of its scenarios, through rse's pytest plugin."""
+    and one test per bound of each of its scenarios, through rse's pytest plugin, here with
+    ``--rse-driver run``: plant, monitor and agent processes over Zenoh, each finding the
+    algorithm through its entry point (the simulator's bounds: the lockstep test below)."""
     pkg, env = installed
     if not (pkg / "tests").is_dir():
         pytest.skip(f"{pkg.name} has no tests/")
     xml = tmp_path / "junit.xml"
     res = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "rse.pytest_plugin",
-                          f"--junitxml={xml}"], capture_output=True, text=True, env=env, timeout=600, cwd=pkg)
+                          "--rse-driver", "run", f"--junitxml={xml}"], capture_output=True, text=True, env=env,
+                         timeout=600, cwd=pkg)
     assert res.returncode == 0, res.stdout + res.stderr
     bounds = [c for c in ET.parse(xml).getroot().iter("testcase") if c.get("classname", "").startswith("scenarios.")]
     n = sum(len(tomllib.loads(sc.read_text())["expect"]) for sc in _scenarios(pkg, "scenarios"))
@@ -105,6 +109,9 @@ def test_the_package_own_tests_and_scenario_bounds_pass_against_the_installed_co
     for case in bounds:
         props = {p.get("name"): p.get("value") for p in case.iter("property")}
         assert case.find("failure") is None and case.find("skipped") is None and float(props["measured"]) >= 0
+        run_dir = Path(props["run_dir"])
+        assert json.loads((run_dir / "manifest.json").read_text())["driver"] == "run"
+        assert float(props["measured"]) in [e["value"] for e in json.loads((run_dir / "summary.json").read_text())["expectations"]]
 
 
 def test_comparisons_fail_their_bounds(installed, tmp_path):

@@ -5,12 +5,12 @@ directory; shortened runs skip the bounds they cannot judge; bad input is one li
 
 The suite's own scenario checks are the plugin's items (``--rse`` in the project's
 addopts, ``scenarios`` in its testpaths); these tests run it in pytester sessions on
-copies of two scenario files, shortened where the bound allows it."""
+copies of two scenario files, shortened where the bound allows it. ``--rse-driver run`` is
+tested on the example plugin package's scenarios (tests/test_example_plugins.py)."""
 
 from __future__ import annotations
 
 import json
-import math
 import re
 import tomllib
 import xml.etree.ElementTree as ET
@@ -127,24 +127,6 @@ def test_bad_options_are_usage_errors(pytester):
     assert "--rse-rounds: expected a positive number of rounds, got 0" in res.stderr.str()
     res = _session(pytester, "--rse-quick", "--rse-rounds", "5")
     assert "--rse-quick and --rse-rounds: give one of them" in res.stderr.str()
-
-
-@pytest.mark.slow
-@pytest.mark.multiprocess
-def test_the_networked_driver_runs_real_processes(pytester):
-    """``--rse-driver run``: plant, monitor and agent processes over Zenoh (a quarter of
-    the horizon here; the full file is the issue's acceptance command, run by hand)."""
-    pytester.makefile(".toml", lks=LKS)
-    xml = pytester.path / "out.xml"
-    res = pytester.runpytest_subprocess("--rse", "-p", "no:cacheprovider", "--rse-driver", "run", "--rse-quick", *FAST,
-                                        f"--junitxml={xml}", timeout=600)
-    res.assert_outcomes(passed=1, skipped=1)
-    (case, props), = [c for c in _cases(xml).values() if "measured" in c[1]]
-    run_dir = pytester.path / props["run_dir"]
-    summary = json.loads((run_dir / "summary.json").read_text())
-    assert json.loads((run_dir / "manifest.json").read_text())["driver"] == "run"
-    assert float(props["measured"]) == summary["expectations"][0]["value"] <= 0.01
-    assert not math.isnan(float(props["measured"]))
 
 
 def test_the_suite_runs_every_built_in_scenario_file_through_the_plugin():
