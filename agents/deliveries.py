@@ -26,7 +26,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from estimation.errors import RSEError
+from estimation.errors import ScenarioError
 
 from .rounds import addressed
 
@@ -132,7 +132,7 @@ def read_incarnation(path: Path) -> Incarnation | None:
     blocks, torn = _blocks(path.read_bytes())
     if not blocks or not isinstance(blocks[0], dict) or blocks[0].get("v") != VERSION:
         if blocks:
-            raise RSEError(f"{path}: not a delivery record of this version (expected v={VERSION})")
+            raise ScenarioError(f"{path}: not a delivery record of this version (expected v={VERSION})")
         return None
     head = blocks[0]
     in_ids = [int(j) for j in head["in"]]
@@ -149,18 +149,24 @@ def read_incarnation(path: Path) -> Incarnation | None:
             st.append(np.frombuffer(b["s"], dtype="<i8"))
         stamps = np.array(st, dtype=np.int64).reshape(len(ks), len(in_ids))
     except (KeyError, TypeError, ValueError) as exc:
-        raise RSEError(f"{path}: a malformed block ({exc})") from None
+        raise ScenarioError(f"{path}: a malformed block ({exc})") from None
     return Incarnation(int(head["agent"]), in_ids, np.array(ks, dtype=np.int64), ys, stamps, sends, torn)
 
 
-def read_record(run_dir: str | Path) -> dict[int, list[Incarnation]]:
-    """Agent id -> its incarnations in the order they started (``RUN_DIR/deliveries``)."""
+def record_files(run_dir: str | Path) -> list[Path]:
+    """The record's files (a :class:`~estimation.errors.ScenarioError` when there are none)."""
     d = Path(run_dir) / DIR
     paths = sorted(d.glob("agent-*.rec")) if d.is_dir() else []
     if not paths:
-        raise RSEError(f"{run_dir}: no delivery record ({DIR}/ is missing or empty; was it written by `rse run`?)")
+        raise ScenarioError(f"{run_dir}: no delivery record ({DIR}/ is missing or empty; was it written by `rse run`?)")
+    return paths
+
+
+def read_record(run_dir: str | Path) -> dict[int, list[Incarnation]]:
+    """Agent id -> its incarnations in the order they started (``RUN_DIR/deliveries``);
+    a missing or malformed record is a :class:`~estimation.errors.ScenarioError` (bad input)."""
     out: dict[int, list[Incarnation]] = {}
-    for p in paths:
+    for p in record_files(run_dir):
         inc = read_incarnation(p)
         if inc is not None:
             out.setdefault(inc.agent, []).append(inc)

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from estimation.errors import RSEError, ScenarioError
+from estimation.errors import ScenarioError
 
 from .runs import RunResult, _override_strings, deferred_signals, ended_by, load
 
@@ -35,18 +35,28 @@ def _read_json(path: Path) -> dict[str, Any] | None:
     except FileNotFoundError:
         return None
     except (OSError, ValueError) as exc:
-        raise RSEError(f"{path}: unreadable ({exc})") from None
+        raise ScenarioError(f"{path}: unreadable ({exc})") from None
     if not isinstance(data, dict):
-        raise RSEError(f"{path}: not a JSON object")
+        raise ScenarioError(f"{path}: not a JSON object")
     return data
+
+
+def check_run_dir(run_dir: Path) -> dict[str, Any]:
+    """The manifest of a recorded run directory; a :class:`ScenarioError` (one line) when
+    ``run_dir`` is no run directory or holds no delivery record."""
+    from .deliveries import record_files
+
+    manifest = _read_json(run_dir / "manifest.json")
+    if manifest is None or not isinstance(manifest.get("scenario"), dict):
+        raise ScenarioError(f"{run_dir}: not a run directory (no manifest.json with the run's scenario)")
+    record_files(run_dir)
+    return manifest
 
 
 def replay_experiment(run_dir: Path, overrides: Iterable[str] = ()) -> Any:
     """The experiment of a recorded run (its frozen scenario and seed from
     ``manifest.json``) with ``overrides`` on top (a counterfactual)."""
-    manifest = _read_json(run_dir / "manifest.json")
-    if manifest is None or not isinstance(manifest.get("scenario"), dict):
-        raise ScenarioError(f"{run_dir}: not a run directory (no manifest.json with the run's scenario)")
+    manifest = check_run_dir(run_dir)
     return load(manifest["scenario"], set=list(overrides), seed=manifest.get("seed"),
                 source=str(manifest.get("source") or run_dir / "manifest.json"))
 

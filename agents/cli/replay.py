@@ -34,9 +34,10 @@ def replay(run_dir: Path, out: Path | None, overrides: tuple[str, ...], progress
     """
     from ..console import expectations_table, round_progress, summary_table
     from ..console import out as console
-    from ..replay_dir import default_out
+    from ..replay_dir import check_run_dir, default_out
 
     sigterm_interrupts()
+    check_run_dir(run_dir)  # bad input is one line, before the progress bar
     dest = out or default_out(run_dir)
     dopts = dashboard_options(dest, rrd, no_rerun, viewer, serve_web, web_port, grpc_port)
     if dopts is not None:

@@ -117,3 +117,17 @@ def test_bad_input_is_one_line(tmp_path):
         read_record(tmp_path)
     with pytest.raises(ScenarioError, match="not a run directory"):
         rse.replay(tmp_path, out=tmp_path / "rep")
+
+
+def test_rse_replay_of_a_directory_without_a_record_is_one_line_exit_2(tmp_path):
+    import subprocess
+
+    from tests.procs import child_env, rse_cmd
+
+    exp = load(LKS, set=LKS_SHORT)
+    rse.simulate(exp, out=tmp_path / "sim")  # a run directory, but no delivery record
+    r = subprocess.run(rse_cmd("replay", str(tmp_path / "sim"), "--no-rerun"), capture_output=True, text=True,
+                       timeout=120, env=child_env())
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [f"error: {tmp_path / 'sim'}: no delivery record (deliveries/ is missing "
+                                             "or empty; was it written by `rse run`?)"]
