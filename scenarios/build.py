@@ -135,6 +135,8 @@ class Experiment:
 
 def _plant(sc: Scenario, source: str) -> PlantModel:
     pl = sc.plant
+    if pl.model != "grid" and (pl.case is not None or pl.pmus is not None):
+        raise ScenarioError(f"plant: case and pmus belong to model 'grid', not {pl.model!r}", source=source)
     if pl.model not in ("three_inertia", "lti"):
         _, build_plant = plugins.plant(pl.model)
         return build_plant(sc, source)

@@ -67,6 +67,10 @@ class PlantSection(Strict):
     x0: Init | None = None
     #: named blocks of the state, 1-based state indices, for per-block metrics
     blocks: dict[str, list[int]] = Field(default_factory=dict)
+    #: model "grid": a pandapower network ("case14", "case118", ...) or a .json file saved from pandapower
+    case: str | None = Field(default=None, min_length=1)
+    #: model "grid": PMU buses (1-based); an entry that is a list is one bank (default: one per generator bus)
+    pmus: list[int | list[int]] | None = Field(default=None, min_length=1)
 
 
 # --------------------------------------------------------------------------- [[sensors]]

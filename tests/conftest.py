@@ -71,9 +71,15 @@ def needs_cvxpy(path: Path) -> list:
     return [pytest.mark.needs("cvxpy", f"{Path(path).name}: {why}")] if why else []
 
 
+def needs_pandapower(path: Path) -> list:
+    """The ``needs("pandapower")`` mark for a scenario file whose plant is ``model = "grid"``."""
+    model = tomllib.loads(Path(path).read_text()).get("plant", {}).get("model")
+    return [pytest.mark.needs("pandapower", f"{Path(path).name}: the grid plant")] if model == "grid" else []
+
+
 def scenario_params(paths) -> list:
-    """One ``pytest.param`` per scenario file, id its stem, marked where it needs cvxpy."""
-    return [pytest.param(p, id=Path(p).stem, marks=needs_cvxpy(p)) for p in paths]
+    """One ``pytest.param`` per scenario file, id its stem, marked where it needs cvxpy or pandapower."""
+    return [pytest.param(p, id=Path(p).stem, marks=needs_cvxpy(p) + needs_pandapower(p)) for p in paths]
 
 
 def rse(*args: str, timeout: float = 300, cwd: Path | None = None, env: dict | None = None) -> subprocess.CompletedProcess:

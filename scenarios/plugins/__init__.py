@@ -55,6 +55,8 @@ GROUP = "rse.algorithms"
 #: what every plugin module defines (``PLANTS`` and ``graph_conditions`` are optional)
 REQUIRED = ("ESTIMATOR", "design", "make_estimator", "conditions", "design_json")
 BUILTIN_PLANTS = ("three_inertia", "lti")
+#: built-in modules that bring named plants only (``PLANTS``, no estimator)
+PLANT_MODULES = ("scenarios.plugins.grid",)
 
 
 @cache
@@ -64,6 +66,7 @@ def modules() -> tuple[ModuleType, ...]:
     algorithms = {algorithm_name(m): m.__name__ for m in mods}
     plants = {name: m.__name__ for m in mods for name in getattr(m, "PLANTS", {})}
     plants.update({name: "the scenario format" for name in BUILTIN_PLANTS})
+    plants.update({name: m.__name__ for m in plant_modules() for name in m.PLANTS})
     for ep in entry_points():
         mod = _load(ep)
         _check(mod, origin(ep), algorithms, plants)
@@ -158,12 +161,18 @@ def threat_model(name: str) -> Any:
     return getattr(algorithm(name), "THREAT_MODEL", None) or ThreatModel()
 
 
+@cache
+def plant_modules() -> tuple[ModuleType, ...]:
+    """The built-in plant-only modules (:data:`PLANT_MODULES`)."""
+    return tuple(importlib.import_module(m) for m in PLANT_MODULES)
+
+
 def estimator_sections() -> tuple[type, ...]:
     return tuple(m.ESTIMATOR for m in modules())
 
 
 def plant_model_names() -> tuple[str, ...]:
-    return tuple(name for m in modules() for name in getattr(m, "PLANTS", {}))
+    return tuple(name for m in (*modules(), *plant_modules()) for name in getattr(m, "PLANTS", {}))
 
 
 def algorithm(name: str) -> ModuleType:
@@ -176,7 +185,7 @@ def algorithm(name: str) -> ModuleType:
 
 def plant(name: str):
     """``(defaults, build)`` of a plugin's named plant."""
-    for m in modules():
+    for m in (*modules(), *plant_modules()):
         if name in getattr(m, "PLANTS", {}):
             return m.PLANTS[name]
     raise KeyError(name)
