@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import tomllib
 from collections.abc import Iterable
 from pathlib import Path
@@ -18,6 +19,7 @@ from pydantic import ValidationError
 
 from estimation.errors import ScenarioError
 
+from .messages import explain
 from .schema import RunSection, Scenario
 
 
@@ -58,6 +60,7 @@ def apply_override(data: dict, assignment: str) -> None:
     if not path.strip() or any(not k for k in keys):
         raise ScenarioError(f"bad key path {path!r}", source=source)
     value = parse_value(text.strip())
+    _check_finite(value, path.strip(), source)
     node: Any = data
     for depth, key in enumerate(keys[:-1]):
         where = ".".join(keys[: depth + 1])
@@ -79,6 +82,18 @@ def apply_override(data: dict, assignment: str) -> None:
         raise ScenarioError(f"{'.'.join(keys[:-1])}: is a value, not a table; cannot set {path}", source=source)
 
 
+def _check_finite(value: Any, where: str, source: str) -> None:
+    """Refuse NaN and infinity anywhere in an override's value (a list, a table)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ScenarioError(f"{where}: expected a finite number, got {value!r}", source=source)
+    if isinstance(value, list):
+        for k, v in enumerate(value):
+            _check_finite(v, f"{where}[{k}]", source)
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            _check_finite(v, f"{where}.{k}", source)
+
+
 def _index(node: list, key: str, where: str, source: str) -> int:
     try:
         idx = int(key)
@@ -91,71 +106,6 @@ def _index(node: list, key: str, where: str, source: str) -> int:
 
 def _list_item(node: list, key: str, where: str, source: str) -> Any:
     return node[_index(node, key, where, source)]
-
-
-def _loc(loc: Iterable[Any]) -> str:
-    parts: list[str] = []
-    for p in loc:
-        if isinstance(p, int):
-            parts.append(f"[{p}]")
-        else:
-            parts.append(("." if parts else "") + str(p))
-    return "".join(parts) or "(top level)"
-
-
-def explain(err: ValidationError, source: str, data: Any) -> ScenarioError:
-    """Turn a pydantic error into one readable :class:`ScenarioError` (all problems listed)."""
-    lines = []
-    for e in err.errors(include_url=False):
-        ctx = e.get("ctx") or {}
-        typ = e["type"]
-        found = e.get("input")
-        if typ == "union_tag_invalid":
-            tags = ctx.get("expected_tags", "").replace("'", "")
-            msg = f"unknown {ctx.get('discriminator', 'kind').strip(chr(39))} {ctx.get('tag')!r}; expected one of {tags}"
-            if ctx.get("discriminator", "").strip(chr(39)) == "algorithm":
-                msg += " (an algorithm from another package is found once that package is installed: rse.algorithms entry points)"
-        elif typ == "union_tag_not_found":
-            msg = f"missing key {ctx.get('discriminator', '').strip(chr(39))!r}"
-        elif typ == "extra_forbidden":
-            msg = "unknown key (not part of the scenario format)"
-        elif typ == "missing":
-            msg = "missing required key"
-        elif typ == "literal_error":
-            msg = f"expected one of {ctx.get('expected')}, got {found!r}"
-        elif typ == "value_error":
-            msg = str(ctx.get("error", e["msg"]))
-        else:
-            msg = f"{e['msg'][0].lower()}{e['msg'][1:]}, got {found!r}"
-        loc = _strip_tags(e["loc"], data)
-        lines.append(f"{_loc(loc)}: {msg}")
-    if len(lines) == 1:
-        return ScenarioError(lines[0], source=source)
-    return ScenarioError(f"{len(lines)} problems:\n  " + "\n  ".join(lines), source=source)
-
-
-_DISCRIMINATORS = ("kind", "algorithm", "target")
-
-
-def _strip_tags(loc: tuple, data: Any) -> list:
-    """Remove the discriminator values pydantic inserts in tagged-union paths.
-
-    Walks the data along the path: a path element that is not a key of the current table
-    but equals its ``kind`` / ``algorithm`` / ``target`` is such a tag.
-    """
-    out: list = []
-    node = data
-    for p in loc:
-        if isinstance(node, dict) and isinstance(p, str) and p not in node and any(node.get(d) == p for d in _DISCRIMINATORS):
-            continue
-        out.append(p)
-        if isinstance(node, dict):
-            node = node.get(p)
-        elif isinstance(node, list) and isinstance(p, int) and 0 <= p < len(node):
-            node = node[p]
-        else:
-            node = None
-    return out
 
 
 def read_toml(path: str | Path) -> dict:
@@ -195,7 +145,7 @@ def validate(raw: dict, *, source: str, overrides: Iterable[str] = ()) -> tuple[
         sc = Scenario.model_validate(data)
     except ValidationError as err:
         src = source + (f" (with --set {' '.join(overrides)})" if overrides else "")
-        raise explain(err, src, data) from None
+        raise explain(err, src, data, Scenario) from None
     return sc, data
 
 
