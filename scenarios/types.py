@@ -9,7 +9,10 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """A table of the scenario format: unknown keys are errors, and so is every NaN or
+    infinite number (a plugin's ``[estimator]`` section inherits both)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 Matrix = list[list[float]]

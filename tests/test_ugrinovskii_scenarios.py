@@ -317,7 +317,7 @@ def ugr_raw():
     (["estimator.biasing.0.node=7"], r"estimator.biasing\[0\].node: no agent 7; agents are 1, 2, 3, 4, 5, 6"),
     (["estimator.biasing.0.target=detector"], r"estimator.biasing\[0\].target: .*set detector_attack_matrix = 'F'"),
     (["plant.params={b=0.1, bogus=1.0}"], r"plant.params: unknown parameter\(s\) \['bogus'\]"),
-    (["plant.params={w_pulse=1.0, w_pulse_duration=inf}"], r"plant.params.w_pulse_duration: a pulse needs a finite duration"),
+    (["plant.params={w_pulse=1.0, w_pulse_duration=inf}"], r"plant.params.w_pulse_duration: expected a finite number, got inf"),
     (["plant.A=[[1.0]]"], "plant: A and B are given by model 'ugrinovskii_example'"),
     (["plant.time=discrete"], "plant.time: model 'ugrinovskii_example' is a continuous-time plant"),
     (["estimator.method=closed_form"], "method 'closed_form' needs gamma2 and gamma2_bar"),
@@ -325,7 +325,7 @@ def ugr_raw():
     (["estimator.channel_noise={kind='pulse', amplitude=1.0}"], "a pulse needs a finite duration"),
     (["estimator.channel_noise={kind='pulse', amplitude=[1.0, 2.0], duration=1.0}"],
      r"estimator.channel_noise.amplitude: expected one number or 1 numbers, got 2"),
-    (["estimator.biasing.0.amplitude=inf"], r"estimator.biasing\[0\].amplitude: entries must be finite"),
+    (["estimator.biasing.0.amplitude=inf"], r"estimator.biasing.0.amplitude: expected a finite number, got inf"),
 ])
 def test_bad_input_names_the_key(overrides, message):
     with pytest.raises(ScenarioError, match=message):

@@ -12,6 +12,7 @@ from estimation.lti import ContinuousLTI
 from estimation.lure import LurePlant
 
 from ..common import STREAM_PLANT_NOISE, PlantModel, rng_for
+from ..helpers import check_size, plant_params
 
 if TYPE_CHECKING:
     from ..schema import Scenario
@@ -117,26 +118,22 @@ _INVERTERS = {"disturbance": 0.0, "hold": 0.1, "substeps": 1.0, "v0_amplitude": 
 
 def _inverter_plant(sc: "Scenario", source: str) -> PlantModel:
     pl = sc.plant
-    unknown = set(pl.params) - set(_INVERTERS)
-    if unknown:
-        raise ScenarioError(f"plant.params: unknown parameter(s) {sorted(unknown)}; expected some of {sorted(_INVERTERS)}", source=source)
     if pl.A is not None or pl.B is not None:
         raise ScenarioError("plant: A and B are given by model 'inverters'", source=source)
     if pl.time == "discrete":
         raise ScenarioError("plant.time: model 'inverters' is a continuous-time plant", source=source)
     if sc.sensors is not None:
         raise ScenarioError("sensors: the sensors (customer voltages) are given by model 'inverters'", source=source)
-    p = {**_INVERTERS, **pl.params}
+    p = plant_params(pl, _INVERTERS, source, integers={"substeps": (1, None)})
+    check_size("substeps", p["substeps"], "plant.params.substeps", run=sc.run, source=source)
     if p["disturbance"] < 0:
         raise ScenarioError(f"plant.params.disturbance: expected a bound >= 0 (V), got {p['disturbance']}", source=source)
     if not p["hold"] > 0:
         raise ScenarioError(f"plant.params.hold: expected a period > 0 (s), got {p['hold']}", source=source)
-    if p["substeps"] != int(p["substeps"]) or p["substeps"] < 1:
-        raise ScenarioError(f"plant.params.substeps: expected a positive integer, got {p['substeps']}", source=source)
     params = InverterParams(v0_amplitude=p["v0_amplitude"], v0_omega=p["v0_omega"])
     seed = int(rng_for(sc.run.seed, STREAM_PLANT_NOISE).integers(2**31 - 1))
     stepper = InverterStepper(params, dt=sc.run.dt, disturbance=p["disturbance"], hold=p["hold"], noise_seed=seed,
-                              substeps=int(p["substeps"]))
+                              substeps=p["substeps"])
     lure = stepper.lure
     n = lure.n
     if pl.state_names and len(pl.state_names) != n:
@@ -145,7 +142,8 @@ def _inverter_plant(sc: "Scenario", source: str) -> PlantModel:
     # linear part and output rows (z = H x + w): shapes and the LTI view; the stepper is the plant
     lti = ContinuousLTI(A=np.array(lure.A), B=np.zeros((n, 0)), banks=tuple(lure.H[i:i + 1].copy() for i in range(lure.N)),
                         state_names=names)
-    return PlantModel(lti=lti, discrete=False, x0=np.zeros(n), blocks={ERROR_BLOCK: np.array(lure.H)}, stepper=stepper)
+    return PlantModel(lti=lti, discrete=False, x0=np.zeros(n), blocks={ERROR_BLOCK: np.array(lure.H)}, stepper=stepper,
+                      substeps=p["substeps"])
 
 
 PLANTS = {"inverters": (_INVERTERS, _inverter_plant)}

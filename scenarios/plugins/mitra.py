@@ -17,6 +17,7 @@ from estimation.patrols import Patrol
 from estimation.robustness import strong_robustness
 
 from ..common import STREAM_MAP, Condition, PlantModel, ThreatModel, checked_design, estimator_section, rng_for
+from ..helpers import check_size, plant_params
 from ..types import Strict
 
 if TYPE_CHECKING:
@@ -50,27 +51,23 @@ def _section(exp: "Experiment") -> MitraEstimator:
 
 def _cell_plant(sc: "Scenario", source: str, defaults: dict) -> PlantModel:
     pl = sc.plant
-    unknown = set(pl.params) - set(defaults)
-    if unknown:
-        raise ScenarioError(f"plant.params: unknown parameter(s) {sorted(unknown)}; expected some of {sorted(defaults)}", source=source)
     if pl.A is not None or pl.B is not None:
         raise ScenarioError(f"plant: A and B are given by model {pl.model!r}", source=source)
     if pl.time == "continuous":
         raise ScenarioError(f"plant.time: model {pl.model!r} is a discrete-time plant", source=source)
     if sc.sensors is not None:
         raise ScenarioError(f"sensors: the sensing locations are given by model {pl.model!r}", source=source)
-    p = {**defaults, **pl.params}
-    for key in ("K", "states", "locations"):
-        if key in p and (p[key] != int(p[key]) or p[key] < 1):
-            raise ScenarioError(f"plant.params.{key}: expected a positive integer, got {p[key]}", source=source)
+    p = plant_params(pl, defaults, source, integers={key: (1, None) for key in ("K", "states", "locations")})
+    per_cell = "states" if pl.model == "cells" else "locations"
+    check_size("states", p["K"] * p[per_cell], f"plant.params.K x plant.params.{per_cell}", run=sc.run, source=source)
     rng = rng_for(sc.run.seed, STREAM_MAP)
     try:
         if pl.model == "cells":
-            m = cell_models.cells(int(p["K"]), rng, cell_size=p["cell_size"], states=int(p["states"]),
+            m = cell_models.cells(p["K"], rng, cell_size=p["cell_size"], states=p["states"],
                                   lam_range=(p["lam_low"], p["lam_high"]))
         else:
-            m = cell_models.diffusion(int(p["K"]), rng, eps=p["eps"], radius=p["radius"], cell_size=p["cell_size"],
-                                      locations=int(p["locations"]))
+            m = cell_models.diffusion(p["K"], rng, eps=p["eps"], radius=p["radius"], cell_size=p["cell_size"],
+                                      locations=p["locations"])
     except DesignError as exc:
         raise ScenarioError(f"plant: {exc}", source=source) from None
     n = m.A.shape[0]

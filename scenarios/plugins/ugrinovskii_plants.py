@@ -14,7 +14,7 @@ from estimation.lti import ContinuousLTI, zoh
 from estimation.ugrinovskii_example import plant_matrix
 
 from ..common import STREAM_ESTIMATOR, STREAM_PLANT_NOISE, PlantModel, rng_for
-from ..helpers import explicit_AB, matrix
+from ..helpers import explicit_AB, matrix, plant_params
 
 if TYPE_CHECKING:
     from ..schema import Scenario
@@ -165,10 +165,7 @@ class _SumSignal:
 def _plant(sc: "Scenario", source: str, model: str) -> PlantModel:
     pl = sc.plant
     defaults = _EXAMPLE if model == "ugrinovskii_example" else _HINF
-    unknown = set(pl.params) - set(defaults)
-    if unknown:
-        raise ScenarioError(f"plant.params: unknown parameter(s) {sorted(unknown)}; expected some of {sorted(defaults)}", source=source)
-    p = {**defaults, **pl.params}
+    p = plant_params(pl, defaults, source)
     for key in ("w_white", "v_white"):
         if p[key] < 0:
             raise ScenarioError(f"plant.params.{key}: a noise intensity must be >= 0, got {p[key]}", source=source)
