@@ -24,7 +24,7 @@ from estimation.patrols import Patrol, PatrolSchedule, cell_patrols
 from estimation.robustness import attachment_graph, cell_graph
 from estimation.signals import Signal
 
-from . import plugins
+from . import budget, plugins
 from .common import (  # noqa: F401  (re-exported for the drivers and tests)
     STREAM_AGENT_X0,
     STREAM_GRAPH,
@@ -35,7 +35,7 @@ from .common import (  # noqa: F401  (re-exported for the drivers and tests)
     PlantModel,
     rng_for,
 )
-from .helpers import explicit_AB, init_vector, matrix
+from .helpers import check_size, explicit_AB, init_vector, matrix
 from .schema import Scenario
 
 
@@ -199,6 +199,7 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
         try:
             K = int(model.cell_of_location.max()) + 1
             per = list(sc.agents.periods)
+            check_size("agents", K * sc.agents.per_cell, "agents.per_cell x cells", run=sc.run, source=source)
             if K % len(per):
                 raise ScenarioError(f"agents.periods: {len(per)} periods do not repeat evenly over {K} cells", source=source)
             gen = cell_patrols(model.cell_of_location, agents_per_cell=sc.agents.per_cell, periods=per * (K // len(per)))
@@ -235,8 +236,10 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     index_of = {aid: i for i, aid in enumerate(agent_ids)}
     agent_rows = [np.concatenate([bank_rows[b] for b in banks]).astype(int) if banks else np.zeros(0, dtype=int) for banks in agent_banks]
     schedules = [PatrolSchedule(pt, model.positions) if pt is not None else None for pt in patrols]
+    check_size("agents", N, "agents", run=sc.run, source=source)
     # graph
     Adj = _graph(sc, N, index_of, source, per_cell=per_cell)
+    _check_cost(sc, model, Adj, source)
     # input, initial state
     inp = sc.plant.input
     p = plant.B.shape[1]
@@ -321,6 +324,17 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     if check_conditions and model.stepper is None:
         _check_float_horizon(exp, source)
     return exp
+
+
+def _check_cost(sc: Scenario, model: PlantModel, Adj: np.ndarray, source: str) -> None:
+    """The whole run's estimated memory and time within the budget (:mod:`scenarios.budget`)."""
+    n, N = model.lti.n, Adj.shape[0]
+    cost = budget.estimate(rounds=sc.run.n_rounds, agents=N, states=n, fused=float(np.count_nonzero(Adj)) * n,
+                           substeps=model.substeps)
+    keys = "run.rounds" if sc.run.rounds is not None else "run.duration / run.dt"
+    budget.check_run(cost, f"{keys} ({sc.run.n_rounds:,} rounds) x {N:,} agents x {n:,} states"
+                     + (f" x plant.params.substeps ({model.substeps:,})" if model.substeps > 1 else ""),
+                     force=sc.run.force, source=source)
 
 
 def _check_float_horizon(exp: Experiment, source: str) -> None:

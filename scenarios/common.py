@@ -54,6 +54,7 @@ class PlantModel:
     cell_of_location: np.ndarray | None = None
     stepper: PlantStepper | None = None
     info: dict[str, Any] = field(default_factory=dict)  # model data plugins need later
+    substeps: int = 1  # integration steps of the plant per round (the size budget's time estimate)
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import Field, model_validator
 
+from . import budget
 from .plugins import estimator_sections, plant_model_names
 from .types import Init, Matrix, Strict, UniformInit, ValueInit, Vector, ZeroInit  # noqa: F401  (the schema's types, importable from here)
 
@@ -24,12 +25,17 @@ class RunSection(Strict):
     dt: float = Field(gt=0, description="round step in seconds")
     duration: float | None = Field(default=None, gt=0, description="seconds; or give rounds")
     rounds: int | None = Field(default=None, gt=0)
-    seed: int = Field(default=0, ge=0)
+    seed: int = Field(default=0, ge=0, lt=2**63)
+    #: a deliberately large run: lifts the documented size limits (scenarios.budget)
+    force: bool = False
 
     @model_validator(mode="after")
     def _one_horizon(self) -> "RunSection":
         if (self.duration is None) == (self.rounds is None):
             raise ValueError("give exactly one of 'duration' (seconds) or 'rounds'")
+        keys = "rounds" if self.rounds is not None else "duration / dt"
+        budget.check_count("rounds", budget.horizon_rounds(self.dt, self.duration, self.rounds), keys,
+                           force=self.force, source=None)
         return self
 
     @property
