@@ -190,6 +190,9 @@ def _grouped(entries: list[tuple[list, str, str, Any]], data: Any) -> list[str]:
             continue
         by_loc.setdefault(_loc(loc), []).append((typ, msg, found))
     lines = []
+    short = {p for p, names in missing.items() if all(isinstance(n, int) for n in names)}  # lists too short
+    for key in [k for k in by_loc if any(k.startswith(p + "[") for p in short)]:
+        del by_loc[key]  # its items' own problems: the list's "expected N items" says it
     for parent, names in missing.items():
         if all(isinstance(n, int) for n in names):
             value = _at(data, [p for p in _path_of(parent, entries)])

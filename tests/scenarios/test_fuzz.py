@@ -46,7 +46,7 @@ def _files() -> list[Path]:
 
 FILES = _files()
 RAW = {p.name: tomllib.loads(p.read_text()) for p in FILES}
-CI_EXAMPLES = 40
+CI_EXAMPLES = 84  # 6 per scenario file
 EXPLORE_EXAMPLES = 2000
 EXAMPLES = int(os.environ.get("RSE_FUZZ_EXAMPLES",
                               EXPLORE_EXAMPLES if os.environ.get("HYPOTHESIS_PROFILE") == "explore" else CI_EXAMPLES))
@@ -157,23 +157,21 @@ def _run_with_limit(data: dict, source: str, overrides: list[str]) -> None:
         signal.signal(signal.SIGALRM, old)
 
 
-@st.composite
-def mutated(draw):
-    name = draw(st.sampled_from(sorted(RAW)))
-    path = draw(st.sampled_from(PATHS[name]))
-    mutation = draw(st.sampled_from(MUTATIONS))
-    as_override = draw(st.booleans())
-    return name, path, mutation, as_override
+def mutations(name: str):
+    """(key path, mutation, as a --set value?) for the scenario file ``name``."""
+    return st.tuples(st.sampled_from(PATHS[name]), st.sampled_from(MUTATIONS), st.booleans())
 
 
-FUZZ = settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+#: examples per scenario file (every file is fuzzed; EXAMPLES in all)
+PER_FILE = max(1, EXAMPLES // max(1, len(FILES)))
+FUZZ = settings(max_examples=PER_FILE, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
-@pytest.mark.skipif(not FILES, reason="no scenario files")
+@pytest.mark.parametrize("name", sorted(RAW))
 @FUZZ
-@given(mutated())
-def test_mutated_scenarios_run_or_name_the_key(case):
-    name, path, mutation, as_override = case
+@given(data=st.data())
+def test_mutated_scenarios_run_or_name_the_key(name, data):
+    path, mutation, as_override = data.draw(mutations(name))
     raw = RAW[name]
     if as_override and mutation != "drop":
         _run_with_limit(raw, name, [_override(path, mutation)])
