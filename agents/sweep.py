@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from estimation.errors import RSEError, ScenarioError
+from scenarios.budget import LIMITS, Cost, check_run
 from scenarios.loader import toml_value
 
 
@@ -44,9 +45,12 @@ def parse_grid(spec: str) -> tuple[str, list[Any]]:
             start, stop, step = (float(p) for p in parts)
         except ValueError:
             raise ScenarioError(f"{key}: range must be START:STOP:STEP numbers, got {text!r}", source="--grid") from None
-        if step <= 0 or stop < start:
-            raise ScenarioError(f"{key}: need STEP > 0 and STOP >= START, got {text!r}", source="--grid")
-        count = int(math.floor((stop - start) / step + 1e-9)) + 1
+        if not all(math.isfinite(v) for v in (start, stop, step)) or step <= 0 or stop < start:
+            raise ScenarioError(f"{key}: need finite numbers, STEP > 0 and STOP >= START, got {text!r}", source="--grid")
+        count_f = math.floor((stop - start) / step + 1e-9) + 1
+        if count_f > LIMITS["points"]:
+            raise ScenarioError(f"{key}: {count_f:.3g} values exceed the limit of {LIMITS['points']:,} points", source="--grid")
+        count = int(count_f)
         values = [round(start + i * step, 12) for i in range(count)]
         if all(float(v).is_integer() for v in (start, stop, step)):
             values = [int(v) for v in values]
@@ -69,6 +73,9 @@ class Point:
 
 
 def points(grid: list[tuple[str, list[Any]]], seeds: list[int]) -> list[Point]:
+    count = math.prod(len(v) for _, v in grid) * len(seeds)
+    if count > LIMITS["points"]:
+        raise ScenarioError(f"{count:,} points (values x seeds) exceed the limit of {LIMITS['points']:,}", source="--grid")
     keys = [k for k, _ in grid]
     return [Point(tuple(zip(keys, combo)), s) for combo in itertools.product(*(v for _, v in grid)) for s in seeds]
 
@@ -168,13 +175,22 @@ def run_points(scenario: Path, overrides: list[str], pts: list[Point], out: Path
 
 def validate_points(scenario: Path, overrides: list[str], pts: list[Point]) -> None:
     """Build every distinct override combination of ``pts`` once (bad keys and values are
-    errors before any run)."""
+    errors before any run); the sum of the runs' estimated times is within the size budget
+    (:mod:`scenarios.budget`; ``run.force`` lifts it)."""
     from scenarios.build import build
     from scenarios.loader import load
 
+    memory = seconds = 0.0
+    force = False
     for combo in dict.fromkeys(p.values for p in pts):
         sc_p, _ = load(scenario, overrides + Point(combo, 0).overrides)
-        build(sc_p, source=str(scenario), check_conditions=False)
+        cost = build(sc_p, source=str(scenario), check_conditions=False).cost
+        runs = sum(p.values == combo for p in pts)
+        if cost is not None:
+            memory, seconds = max(memory, cost.memory), seconds + runs * cost.seconds
+        force = force or sc_p.run.force
+    check_run(Cost(memory=memory, seconds=seconds), "--grid", force=force, source=str(scenario),
+              what=f"the sweep ({len(pts)} runs)")
 
 
 def run_sweep(scenario: Path, grid_specs: list[str], *, seeds: int, jobs: int, out: Path,
@@ -189,6 +205,8 @@ def run_sweep(scenario: Path, grid_specs: list[str], *, seeds: int, jobs: int, o
         raise ScenarioError("give at least one --grid KEY=VALUES", source="command line")
     sc, _ = load(scenario, overrides)
     base_seed = sc.run.seed
+    if seeds > LIMITS["points"]:
+        raise ScenarioError(f"{seeds:,} seeds exceed the limit of {LIMITS['points']:,} points", source="--seeds")
     seed_list = [base_seed + i for i in range(seeds)]
     pts = points(grid, seed_list)
     validate_points(scenario, overrides, pts)

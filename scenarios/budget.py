@@ -24,8 +24,9 @@ from dataclasses import dataclass
 
 from estimation.errors import ScenarioError
 
-#: documented limits on the counts a scenario asks for (``[run] force = true`` lifts them)
-LIMITS = {"rounds": 10_000_000, "agents": 100_000, "states": 100_000, "substeps": 10_000}
+#: documented limits on the counts a scenario asks for (``[run] force = true`` lifts them;
+#: ``points``, a sweep's values x seeds, is a limit of ``rse sweep --grid``)
+LIMITS = {"rounds": 10_000_000, "agents": 100_000, "states": 100_000, "substeps": 10_000, "points": 100_000}
 #: the longest estimated run (seconds of the in-process simulator) without ``force``
 MAX_SECONDS = 24 * 3600.0
 #: the share of the machine's memory a run's estimate may take, force or not
@@ -112,13 +113,14 @@ def estimate(*, rounds: float, agents: int, states: int, fused: float, substeps:
     return Cost(memory=memory, seconds=points * (rounds + 1) * per_round)
 
 
-def check_run(cost: Cost, keys: str, *, force: bool, source: str | None, memory: int | None = None) -> None:
+def check_run(cost: Cost, keys: str, *, force: bool, source: str | None, memory: int | None = None,
+              what: str = "this run") -> None:
     """Refuse a run whose estimate passes the machine's memory (:data:`MEMORY_SHARE` of it,
     always) or :data:`MAX_SECONDS` (unless ``force``); ``keys`` names what sets its size."""
     total = machine_memory() if memory is None else memory
     if cost.memory > MEMORY_SHARE * total:
-        raise ScenarioError(f"{keys}: this run needs {cost.describe()}, more than this machine's memory "
+        raise ScenarioError(f"{keys}: {what} needs {cost.describe()}, more than this machine's memory "
                             f"({total / 2**30:.3g} GiB); make it smaller", source=source)
     if not force and cost.seconds > MAX_SECONDS:
-        raise ScenarioError(f"{keys}: this run needs {cost.describe()}, beyond the limit of {_duration(MAX_SECONDS)}; "
+        raise ScenarioError(f"{keys}: {what} needs {cost.describe()}, beyond the limit of {_duration(MAX_SECONDS)}; "
                             f"{FORCE_HINT}", source=source)

@@ -78,6 +78,8 @@ class Experiment:
     #: the horizon in seconds of the scenario file itself, before overrides (None: unknown);
     #: a shorter run lists the bounds meant for the file's horizon as not evaluated
     nominal_horizon: float | None = None
+    #: the run's estimated memory and time (scenarios.budget), checked when it was built
+    cost: budget.Cost | None = None
 
     # ------------------------------------------------------------------ derived
     @property
@@ -239,7 +241,7 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     check_size("agents", N, "agents", run=sc.run, source=source)
     # graph
     Adj = _graph(sc, N, index_of, source, per_cell=per_cell)
-    _check_cost(sc, model, Adj, source)
+    cost = _check_cost(sc, model, Adj, source)
     # input, initial state
     inp = sc.plant.input
     p = plant.B.shape[1]
@@ -312,6 +314,7 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
         bank_names=bank_names, agent_ids=agent_ids, agent_rows=agent_rows, Adj=Adj, blocks=blocks,
         sensor_attacks=attacks, byzantine=byzantine, byzantine_specs=specs, discrete=model.discrete,
         positions=model.positions, patrols=patrols, schedules=schedules, cell_of_location=model.cell_of_location,
+        cost=cost,
     )
     _check_expectations(exp, source)
     if check_conditions:
@@ -326,7 +329,7 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     return exp
 
 
-def _check_cost(sc: Scenario, model: PlantModel, Adj: np.ndarray, source: str) -> None:
+def _check_cost(sc: Scenario, model: PlantModel, Adj: np.ndarray, source: str) -> budget.Cost:
     """The whole run's estimated memory and time within the budget (:mod:`scenarios.budget`)."""
     n, N = model.lti.n, Adj.shape[0]
     cost = budget.estimate(rounds=sc.run.n_rounds, agents=N, states=n, fused=float(np.count_nonzero(Adj)) * n,
@@ -335,6 +338,7 @@ def _check_cost(sc: Scenario, model: PlantModel, Adj: np.ndarray, source: str) -
     budget.check_run(cost, f"{keys} ({sc.run.n_rounds:,} rounds) x {N:,} agents x {n:,} states"
                      + (f" x plant.params.substeps ({model.substeps:,})" if model.substeps > 1 else ""),
                      force=sc.run.force, source=source)
+    return cost
 
 
 def _check_float_horizon(exp: Experiment, source: str) -> None:
