@@ -237,6 +237,11 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     N = len(agent_ids)
     index_of = {aid: i for i, aid in enumerate(agent_ids)}
     agent_rows = [np.concatenate([bank_rows[b] for b in banks]).astype(int) if banks else np.zeros(0, dtype=int) for banks in agent_banks]
+    for k, pt in enumerate(patrols):  # a schedule tabulates its first offset + hyper-period rounds
+        if pt is not None:
+            keys = "agents.periods" if per_cell is not None else f"agents[{k}].patrol.periods, offsets"
+            check_size("rounds", max(pt.offsets) + pt.hyper_period, f"{keys} (largest offset + hyper-period)",
+                       run=sc.run, source=source)
     schedules = [PatrolSchedule(pt, model.positions) if pt is not None else None for pt in patrols]
     check_size("agents", N, "agents", run=sc.run, source=source)
     # graph
@@ -260,7 +265,11 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     if model.discrete:
         Ad, Bd = plant.A, plant.B  # shared, never written (a 1,024-agent team's A is 200 MB)
     else:
-        Ad, Bd = zoh(plant.A, plant.B, sc.run.dt)
+        with np.errstate(all="ignore"):
+            Ad, Bd = zoh(plant.A, plant.B, sc.run.dt)
+        if not (np.all(np.isfinite(Ad)) and np.all(np.isfinite(Bd))):
+            raise ScenarioError(f"run.dt: the plant's one-round transition expm(A dt) overflows float64 at dt = {sc.run.dt:g}; "
+                                "use a shorter step", source=source)
     # blocks
     blocks: dict[str, np.ndarray] = {"x": np.arange(n), **model.blocks}
     for name, idx in sc.plant.blocks.items():

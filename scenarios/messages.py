@@ -202,6 +202,9 @@ def _grouped(entries: list[tuple[list, str, str, Any]], data: Any) -> list[str]:
         else:
             lines.append(f"{parent}: missing required keys {', '.join(repr(n) for n in names)}")
     for key, msgs in by_loc.items():
+        finer = [m for m in msgs if m[0] not in _EXPECTED]
+        if finer:  # the value has the shape of an alternative and fails its finer check: that is the problem
+            msgs = finer
         if len(msgs) > 1 and all(t in _EXPECTED for t, _, _ in msgs):  # the alternatives of a union, in one line
             kinds = list(dict.fromkeys(_EXPECTED[t] for t, _, _ in msgs))
             lines.append(f"{key}: expected {' or '.join(kinds)}, got {msgs[0][2]!r}")

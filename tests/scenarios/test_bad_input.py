@@ -150,3 +150,24 @@ def test_time_estimate_is_refused_beyond_the_limit_without_force():
     with pytest.raises(ScenarioError, match=r"k: this run needs about .* and 833 h, beyond the limit of 24 h; set run.force"):
         budget.check_run(cost, "k", force=False, source=None, memory=2**50)
     budget.check_run(cost, "k", force=True, source=None, memory=2**50)
+
+
+def test_patrol_tables_within_the_rounds_limit():
+    """A patrol schedule tabulates its largest offset + hyper-period rounds (the lcm of its
+    periods): a huge or coprime set of periods is refused before the table is built."""
+    d = raw("mitra_nonresilient.toml")
+    d["agents"]["periods"][3] = 10**30
+    assert message(d) == ("x.toml: agents.periods (largest offset + hyper-period): 1e+30 rounds exceed the limit of "
+                          "10,000,000 rounds; set run.force = true (--set run.force=true) for a deliberately large run")
+
+
+def test_a_step_whose_transition_overflows_names_run_dt():
+    msg = message(raw("lee_kim_shim.toml"), ["run.dt=1e300"])
+    assert msg == "x.toml: run.dt: the plant's one-round transition expm(A dt) overflows float64 at dt = 1e+300; use a shorter step"
+
+
+def test_one_alternative_s_finer_problem_is_the_message():
+    """``remove`` pairs take an id or a list of ids: a NaN id is a bad number, not "should be a list"."""
+    d = raw("mitra_omission.toml")
+    d["network"]["graph"]["remove"][0][0] = math.nan
+    assert message(d) == "x.toml: network.graph.remove[0][0]: expected a finite number, got nan"
