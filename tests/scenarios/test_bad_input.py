@@ -14,7 +14,8 @@ import pytest
 from click.testing import CliRunner
 
 from agents.cli import cli
-from estimation.errors import EXIT_BAD_INPUT, ScenarioError
+from agents.net.exits import EXIT_BAD_INPUT
+from estimation.errors import ScenarioError
 from scenarios import budget
 from scenarios.build import build
 from scenarios.helpers import finite, integer, plant_params
