@@ -19,8 +19,9 @@ from transport.codec import PLANT_ID, Schema, decode
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import LAZY, UNHEARD_S, Role, RunConfig, _msg, diagnostics_meta, receivers_of
+from .protocol import LAZY, Role, RunConfig, _msg, diagnostics_meta, receivers_of
 from .rejoin import RejoinChecks
+from .schedule import schedule_for
 from .view import NetworkView, reads_view
 
 if TYPE_CHECKING:
@@ -51,9 +52,11 @@ class AgentProcess(RejoinChecks, Role):
             node_hook(self.node)
         self.in_ids = list(part.in_ids)
         self.out_ids = list(part.out_ids)
+        #: how rounds are scheduled (agents.net.schedule): lockstep or realtime
+        self.schedule = schedule_for(cfg.mode)
         #: lockstep: this agent's done report carries its broadcast estimate, and those of
         #: the in-neighbours in part.merged carry theirs (see agents.net.slices.merges)
-        self._merge_in = cfg.mode == "lockstep"
+        self._merge_in = self.schedule.merges
         self._merge = self._merge_in and part.agent_id in part.merged and node.strategy is None
         self.member = False
         self.meas: dict[int, tuple[np.ndarray | None, np.ndarray, float]] = {}
@@ -105,9 +108,7 @@ class AgentProcess(RejoinChecks, Role):
         # lockstep: what the next round needs comes before its measurement, which wakes
         # this agent; an omniscient adversary (a view) then sleeps until as many messages
         # came as its view still misses (_release_held)
-        loc = self._loc_key
-        ok = self.cfg.mode == "lockstep"
-        return (lambda item: item[0] != loc and type(item[1]) is bytes) if ok else None
+        return self.schedule.lazy(self._loc_key)
 
     def handle_data(self, key: str, payload: bytes) -> None:
         if key == self._loc_key:
@@ -295,7 +296,7 @@ class AgentProcess(RejoinChecks, Role):
         own = node.estimate(out)
         msg = node.publish(k, out) if node.strategy is not None else out
         aid = self.id
-        drop = self.cfg.mode == "realtime"  # an estimate a neighbour cannot take now is dropped for it alone
+        drop = self.schedule.droppable
         try:
             if k < self.silent_until:  # warming up after a late join: listen only
                 to, stamps = [], []
@@ -328,49 +329,37 @@ class AgentProcess(RejoinChecks, Role):
         arrays = {"x": own, "to": np.array(to, dtype=float), "stamps": np.array(stamps, dtype=float)}
         bus.publish(self._done_key, _msg("done", aid, k, arrays, meta=meta or None))
 
+    def went_on_without(self, k: int) -> None:
+        """Lockstep: round ``k`` ran after its deadline without some neighbours' messages."""
+        self.waited_out += 1
+        if self.waited_out in (1, 10, 100, 1000):
+            log.warning("agent %d: round %d went on without some neighbours' messages (%d time(s))",
+                        self.id, k, self.waited_out)
+
     def _step(self) -> None:
-        """Run every round that can run now."""
-        lockstep = self.cfg.mode == "lockstep"
+        """Run every round that can run now (which: the schedule's choice)."""
+        schedule = self.schedule
         now = time.monotonic()
         if self._held is not None and not self._release_held(now):
             return
         while self.meas:
-            if lockstep:
-                k = min(self.meas)
-                y, wait, t_arr = self.meas[k]
-                if not self._arrived_all(wait):
-                    self.wake_at(1)  # each message may be the one missing
-                    self._poll_later()
-                    if now < t_arr + self.cfg.deadline:
-                        self._tick_at(t_arr + self.cfg.deadline)
-                        return
-                    self.waited_out += 1
-                    if self.waited_out in (1, 10, 100, 1000):
-                        log.warning("agent %d: round %d went on without some neighbours' messages (%d time(s))",
-                                    self.id, k, self.waited_out)
-                del self.meas[k]
-            else:
-                k = max(self.meas)
-                y = self.meas[k][0]
-                self.skipped += len(self.meas) - 1
-                self.meas.clear()
+            taken = schedule.next_round(self, now)
+            if taken is None:
+                return
+            k, y = taken
             out = self.node.run_round(k, y)
             self.last = k
             self.rounds_run += 1
             for s in [s for s in self.arrived if s < k - 2]:
                 del self.arrived[s]
-            if self.view is not None and lockstep and k >= self.silent_until:
+            if self.view is not None and schedule.holds_for_view and k >= self.silent_until:
                 self._held = (k, out, now)
                 if not self._release_held(now):
                     return
             else:
                 self._publish_round(k, out)
         if self.stop is not None and not self.meas:
-            K, wait, t_arr = self.stop
-            if lockstep and self.member and not self._arrived_all(wait) and now < t_arr + self.cfg.deadline:
-                self.wake_at(1)
-                self._poll_later()
-                self._tick_at(t_arr + self.cfg.deadline)
+            if schedule.waits_before_stop(self, now):
                 return
             self.finished.set()
         elif self.member and not self.meas:
@@ -410,7 +399,7 @@ class AgentProcess(RejoinChecks, Role):
         merged_ins = [j for j in self.in_ids if j in self.part.merged] if self._merge_in else []
         if self.view is None:
             # lockstep: the measurement wakes it; what its in-neighbours sent waits, polled
-            polled = cfg.mode == "lockstep"
+            polled = self.schedule.polled
             for j in self.in_ids:
                 if j not in merged_ins:  # a merged in-neighbour sends its estimate in its report only
                     self.subscribe(keys.est(j), polled=polled)
@@ -459,13 +448,8 @@ class AgentProcess(RejoinChecks, Role):
                     if not self.running_team and time.monotonic() - t_start > cfg.startup_timeout:
                         raise TransportError(f"agent {self.id}: no plant found within {cfg.startup_timeout:g} s")
                     timeout = 0.1
-                elif cfg.mode == "realtime":
-                    if self._measurements_stopped():
-                        gap = time.monotonic() - self._last_loc
-                        await self.reconnect(f"no measurement from the plant for {gap:.1f} s")
-                    timeout = UNHEARD_S / 4
                 else:
-                    timeout = None
+                    timeout = await self.schedule.idle(self)
                 if ("plant", 0) not in self.alive and self.plant_seen_at is not None and self.stop is None:
                     # the plant left without stopping the team: give it a moment, then leave
                     await asyncio.sleep(max(0.5, cfg.deadline))
