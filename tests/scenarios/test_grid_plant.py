@@ -102,3 +102,21 @@ def test_without_pandapower_one_line_naming_the_extra(tmp_path, monkeypatch):
     with pytest.raises(ScenarioError, match=r"needs pandapower, which is not installed; pip install .*\[grid\]") as exc:
         _build(_scenario(tmp_path, 'case = "case14"'))
     assert "\n" not in str(exc.value)
+
+
+def test_case14_conditions_rse_check_reports():
+    """The redundancy that sets the case14 scenario's attack budget, and Theorem 1's bound."""
+    from pathlib import Path
+
+    from scenarios.build import conditions
+
+    path = Path(__file__).resolve().parents[2] / "scenarios" / "case14.toml"
+    exp = _build(str(path))
+    found = {c.name: c for c in conditions(exp)}
+    assert found["4-redundant observability, q = 2 (Assumption 2)"].holds
+    assert found["each direction observed by >= 2q+1 = 5 agents (Lemma 1)"].holds
+    bound = next(c for name, c in found.items() if name.startswith("Theorem 1 bound"))
+    assert float(bound.detail) == pytest.approx(1.61803, abs=1e-5)
+    sc, _ = load(str(path), ("estimator.q=3",))  # one more falsified PMU than the redundancy allows
+    with pytest.raises(ScenarioError, match="not 6-redundantly observable"):
+        build(sc, source=str(path))
