@@ -46,11 +46,11 @@ def pytest_runtest_setup(item):
 
 def pytest_collection_modifyitems(config, items):
     """The scenario files' bounds (collected by ``rse.pytest_plugin`` under ``--rse``, the
-    suite's addopts) skip, as the suite's own tests do, where their design needs cvxpy and it
-    is absent (or hidden by ``--without cvxpy``)."""
+    suite's addopts) skip, as the suite's own tests do, where they need cvxpy or pandapower and
+    it is absent (or hidden by ``--without MODULE``)."""
     for item in items:
         if item.path.suffix == ".toml":
-            for mark in needs_cvxpy(item.path):
+            for mark in needs_cvxpy(item.path) + needs_pandapower(item.path):
                 name, why = mark.args
                 if _absent(name):
                     item.add_marker(pytest.mark.skip(reason=f"needs {name} for {why} (not installed)"))
