@@ -154,17 +154,19 @@ def problems(err: ValidationError, data: Any, model: type[BaseModel] | None = No
         loc = _strip_tags(e["loc"], data)
         found = e.get("input")
         typ = e["type"]
-        parent = _at(data, loc[:-1]) if loc else None
-        if (typ == "list_type" and loc and isinstance(loc[-1], int) and isinstance(parent, list) and parent
-                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in parent)):
-            rows_of[_loc(loc[:-1])] = parent  # a vector where a matrix (list of rows) is expected
-            continue
         msg = _message(e, found)
         if typ in ("model_attributes_type", "dict_type", "model_type") and isinstance(found, str) and model is not None:
             disc = _discriminator(loc, model)
             if disc is not None:
                 msg = f"expected a table, e.g. {_loc(loc)} = {{ {disc} = {_toml(found)} }}, got {found!r}"
         entries.append((loc, typ, msg, found))
+    alone = [e for e in entries if e[1] == "list_type" and sum(o[0] == e[0] for o in entries) == 1]
+    for loc, _, _, _ in alone:  # a number where a list is expected, and nothing else wrong there
+        parent = _at(data, loc[:-1])
+        if (loc and isinstance(loc[-1], int) and isinstance(parent, list) and parent
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in parent)):
+            rows_of[_loc(loc[:-1])] = parent  # a vector where a matrix (list of rows) is expected
+    entries = [e for e in entries if not (e in alone and _loc(e[0][:-1]) in rows_of)]
     lines = [f"{key} is a list of rows: [{_toml(row)}]" for key, row in rows_of.items()]
     return lines + _grouped(_applicable(entries), data)
 

@@ -257,7 +257,7 @@ class OutputSection(Strict):
 class Expectation(Strict):
     metric: Literal["error_2", "error_inf", "relative_error_2", "error_ratio"]
     block: str = "x"
-    agents: Literal["regular"] | list[int] = "regular"
+    agents: Literal["regular"] | Annotated[list[int], Field(min_length=1)] = "regular"
     over: Literal["window", "final"] | tuple[float, float] = "window"
     max: float | None = None
     min: float | None = None

@@ -172,3 +172,12 @@ def test_one_alternative_s_finer_problem_is_the_message():
     d = raw("mitra_omission.toml")
     d["network"]["graph"]["remove"][0][0] = math.nan
     assert message(d) == "x.toml: network.graph.remove[0][0]: expected a finite number, got nan"
+
+
+def test_found_by_the_fuzz_an_id_or_a_list_and_an_empty_agent_list():
+    d = raw("mitra_omission.toml")
+    d["network"]["graph"]["remove"][1][0] = -0.5  # an id or a list of ids: not "a list of rows"
+    assert message(d) == "x.toml: network.graph.remove[1][0]: expected an integer or a list, got -0.5"
+    d = raw("mitra_omission.toml")
+    d["expect"][0]["agents"] = []  # was an IndexError in the summary
+    assert message(d) == "x.toml: expect[0].agents: list should have at least 1 item after validation, not 0, got []"
