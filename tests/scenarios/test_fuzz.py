@@ -13,7 +13,6 @@ In CI a fixed number of derandomized examples (tests/conftest.py's profiles);
 from __future__ import annotations
 
 import copy
-import importlib.util
 import math
 import os
 import re
@@ -29,22 +28,14 @@ from hypothesis import strategies as st
 import rse
 from estimation.errors import ScenarioError
 from scenarios.loader import toml_value
+from tests.conftest import scenario_params
 
 ROOT = Path(__file__).resolve().parents[2]
-CVXPY = importlib.util.find_spec("cvxpy") is not None
-LMI_ALGORITHMS = {"median_bank", "ugrinovskii"}
 
 
-def _files() -> list[Path]:
-    out = []
-    for p in sorted((ROOT / "scenarios").glob("*.toml")):
-        algorithm = tomllib.loads(p.read_text()).get("estimator", {}).get("algorithm")
-        if CVXPY or algorithm not in LMI_ALGORITHMS:
-            out.append(p)
-    return out
-
-
-FILES = _files()
+#: every scenario file; those whose algorithm or plant needs an optional extra (cvxpy,
+#: pandapower) skip without it (tests/conftest.py's marks)
+FILES = sorted((ROOT / "scenarios").glob("*.toml"))
 RAW = {p.name: tomllib.loads(p.read_text()) for p in FILES}
 CI_EXAMPLES = 84  # 6 per scenario file
 EXPLORE_EXAMPLES = 2000
@@ -167,10 +158,11 @@ PER_FILE = max(1, EXAMPLES // max(1, len(FILES)))
 FUZZ = settings(max_examples=PER_FILE, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
-@pytest.mark.parametrize("name", sorted(RAW))
+@pytest.mark.parametrize("scenario", scenario_params(FILES))
 @FUZZ
 @given(data=st.data())
-def test_mutated_scenarios_run_or_name_the_key(name, data):
+def test_mutated_scenarios_run_or_name_the_key(scenario, data):
+    name = scenario.name
     path, mutation, as_override = data.draw(mutations(name))
     raw = RAW[name]
     if as_override and mutation != "drop":
