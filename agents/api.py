@@ -83,8 +83,8 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
     from agents.net.exits import EXIT_INTERRUPTED
     from estimation.errors import RSEError, ScenarioError
 
+    from .net.config import RunConfig
     from .net.launcher import Hooks, launch
-    from .net.protocol import RunConfig
     from .rundir import default_run_dir
 
     try:

@@ -86,8 +86,8 @@ def write_team(exp: Any, out: Path, *, scenario: str, run_id: str, connect: str,
     import pickle
 
     from agents.middleware import make_channel, make_nodes
+    from agents.net.config import RunConfig
     from agents.net.launcher import Team
-    from agents.net.protocol import RunConfig
     from agents.net.slices import agent_slices, plant_slice, write_slices
 
     out = Path(out)

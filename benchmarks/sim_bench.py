@@ -103,7 +103,7 @@ def measure_team(agents: int, rounds: int, repeats: int) -> dict[str, Any]:
         If the scenario does not give ``agents`` agents, or two runs end differently.
     """
     from agents.api import load_experiment  # also pins BLAS to one thread, as rse does
-    from agents.net.protocol import maxrss_mb
+    from agents.net.figures import maxrss_mb
     from agents.simulate import simulate
 
     rss0 = current_rss_mb()

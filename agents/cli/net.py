@@ -48,7 +48,7 @@ def _run_options(fn: Callable) -> Callable:
 
 def _config(mode: str, rate: float | None, deadline: float, startup_timeout: float, save_estimates: bool = False,
             warmup: float = 3.0):
-    from ..net.protocol import RunConfig
+    from ..net.config import RunConfig
 
     try:
         return RunConfig(mode=mode, rate=rate, deadline=deadline, startup_timeout=startup_timeout,

@@ -19,10 +19,12 @@ from transport.codec import PLANT_ID, Schema, decode
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import LAZY, Role, RunConfig, _msg, diagnostics_meta, receivers_of
+from .config import LAZY, RunConfig
+from .protocol import Role
 from .rejoin import RejoinChecks
 from .schedule import schedule_for
 from .view import NetworkView, reads_view
+from .wire import _msg, diagnostics_meta, receivers_of
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -166,7 +168,7 @@ class AgentProcess(RejoinChecks, Role):
         :attr:`~agents.net.slices.AgentSlice.merged`): handed to the node as its estimate
         message when it names this agent among its receivers. Returns ``(sender, stamp, x,
         receivers)`` of a valid report; receivers None: a broadcast report (kind "est",
-        :func:`~agents.net.protocol.report_to`), to every out-neighbour stamped with its round."""
+        :func:`~agents.net.wire.report_to`), to every out-neighbour stamped with its round."""
         got = self.decode(key, payload, self.wire.done)
         if got is None:
             return None

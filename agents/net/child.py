@@ -25,8 +25,8 @@ from agents.net.exits import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, describe, e
 from estimation.errors import RSEError, ScenarioError, TransportError
 from transport.event_loop import run as run_loop
 
+from .config import RunConfig
 from .parent import die_with_parent as _die_with_parent
-from .protocol import RunConfig
 from .recording import claim, release
 
 log = logging.getLogger("rse.net")

@@ -46,8 +46,8 @@ from agents.net.exits import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 from estimation.errors import ScenarioError
 
 from .child import ChildSpec
+from .config import RunConfig
 from .plan import TeamPlan, plan_team
-from .protocol import RunConfig
 from .recording import complete_run_dir
 from .startup import PEER_RETRY_MS, child_env
 from .supervisor import Outcome, Supervisor

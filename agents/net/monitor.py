@@ -19,21 +19,10 @@ from transport.codec import MONITOR_ID, PLANT_ID, Message
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import (
-    ACK_EVERY,
-    MONITOR_LAG,
-    RECONNECTS,
-    UNHEARD_S,
-    Rejects,
-    Role,
-    RunConfig,
-    _msg,
-    diagnostics_from_meta,
-    out_ids_of,
-    process_figures,
-    report_to,
-    who_name,
-)
+from .config import ACK_EVERY, MONITOR_LAG, RECONNECTS, UNHEARD_S, RunConfig
+from .figures import process_figures
+from .protocol import Role
+from .wire import Rejects, _msg, diagnostics_from_meta, out_ids_of, report_to, who_name
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -268,7 +257,7 @@ class MonitorProcess(Role):
 
     def _reports_unheard(self) -> list[int]:
         """A rejoining monitor that has held at least 20 rounds with the truth for
-        :data:`~agents.net.protocol.UNHEARD_S` without a report from some live agent: those
+        :data:`~agents.net.config.UNHEARD_S` without a report from some live agent: those
         agents (else []). Seen 3 times in 32 scripted rejoins: a restarted monitor got
         the plant's truth but no report from the agents that had run all along. Where that
         lasted, those agents had stopped getting measurements and sent nothing at all (they

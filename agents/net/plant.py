@@ -19,7 +19,9 @@ from transport.codec import MONITOR_ID, PLANT_ID
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .protocol import MAX_AHEAD, Role, RunConfig, _msg, out_ids_of, report_to
+from .config import MAX_AHEAD, RunConfig
+from .protocol import Role
+from .wire import _msg, out_ids_of, report_to
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment

@@ -1,8 +1,10 @@
 """The round protocol of the networked runtime and what its three roles share.
 
 The roles live in one module each (:mod:`agents.net.plant`, :mod:`agents.net.agent`,
-:mod:`agents.net.monitor`); this module holds the protocol's configuration, message
-schemas, rejection counters and the :class:`Role` base class. Each role reuses the
+:mod:`agents.net.monitor`); this module describes the protocol and holds the :class:`Role`
+base class. The run configuration is :mod:`agents.net.config`, what goes on the wire
+(schemas, reports, rejection counters) :mod:`agents.net.wire`, a process's own figures
+:mod:`agents.net.figures`, and how an agent schedules its rounds :mod:`agents.net.schedule`. Each role reuses the
 in-process simulator's pieces (:class:`~agents.plant.PlantRole`,
 :class:`~agents.node.AgentNode`, :class:`~agents.monitor.Monitor`), so both drivers share
 the round logic and the channel model (drops and delays are decided receiver-side by
@@ -56,241 +58,26 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
-import resource
 import time
-from collections import Counter
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from estimation.errors import MessageError
-from transport.codec import MIN_ID, MONITOR_ID, PLANT_ID, Message, Schema, decode, encode_fields
+from transport.codec import Message, Schema, decode
 from transport.keys import Keys, ParsedKey
 from transport.zenoh_bus import POLLED_CAPACITY, Bus
-from transport.zenoh_session import thread_counts
+
+from .config import QUEUE_SIZE, RECONNECTS, RunConfig
+from .figures import process_figures
+from .wire import Rejects, Wire, _msg
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
 
 
 log = logging.getLogger("rse.net")
-
-MODES = ("lockstep", "realtime")
-QUEUE_SIZE = 1 << 16
-MONITOR_LAG = 128  # the monitor closes round k once truth k + LAG arrived
-ACK_EVERY = 32
-#: a process that rejoined a running team and hears nothing from some peer for this long
-#: opens a new session (transport.zenoh_bus.ZenohBus.reconnect), at most RECONNECTS times
-UNHEARD_S = 3.0
-RECONNECTS = 5
-#: lazy items wake a role that set no other bound once this many wait (see Role.lazy_items)
-LAZY = QUEUE_SIZE // 2
-MAX_AHEAD = 512  # lockstep: the plant waits when the monitor is this many rounds behind
-UNKNOWN = MIN_ID  # sender code of a message whose key names no sender
-REASONS = ("size", "decode", "type", "keys", "version", "sender", "shape", "nonfinite", "key", "range", "neighbour",
-           "invalid")
-
-
-@dataclass(frozen=True)
-class RunConfig:
-    """How the team runs (picklable: handed to spawned processes).
-
-    mode : "lockstep" or "realtime"
-    rate : Hz; required for realtime (the plant's wall-clock tick); in lockstep an
-        optional upper bound on the round rate (pacing)
-    deadline : seconds a lockstep round waits for a missing agent or message
-    startup_timeout : seconds to wait for the team to assemble
-    save_estimates : the monitor also writes ``estimates.npy`` and ``truth.npy``
-    linger : seconds the monitor waits for the final counters after the last round
-    warmup : scenario seconds an agent that joins a running team (round > 0) listens
-        before it publishes (its estimate converges first instead of disturbing its
-        neighbours); the monitor records it from its first round
-    deliveries : each agent process writes the delivery record (:mod:`agents.deliveries`)
-        into the run directory (off: benchmarks measuring its cost)
-    """
-
-    mode: str = "lockstep"
-    rate: float | None = None
-    deadline: float = 1.0
-    startup_timeout: float = 60.0
-    save_estimates: bool = False
-    linger: float = 2.0
-    warmup: float = 3.0
-    deliveries: bool = True
-
-    def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
-        if self.mode == "realtime" and not self.rate:
-            raise ValueError("realtime mode needs --rate HZ")
-        if self.rate is not None and not (self.rate > 0 and math.isfinite(self.rate)):
-            raise ValueError(f"rate must be a positive number of Hz, got {self.rate!r}")
-        if not self.deadline > 0:
-            raise ValueError(f"deadline must be > 0 s, got {self.deadline!r}")
-
-
-def maxrss_mb() -> float:
-    """Peak resident set size of this process (MB): ``VmHWM`` of ``/proc/self/status``
-    (``ru_maxrss`` is inherited across ``exec`` on Linux, so a spawned child would
-    report its launcher's peak), else psutil's current RSS."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    try:
-        import psutil
-
-        return psutil.Process().memory_info().rss / 2**20
-    except Exception:  # pragma: no cover
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def cpu_s() -> float:
-    """CPU seconds (user + system) of every thread of this process so far."""
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    return round(usage.ru_utime + usage.ru_stime, 3)
-
-
-def uss_mb() -> float:
-    """Unique set size of this process now (MB): its private pages (``Private_Clean`` +
-    ``Private_Dirty`` of ``/proc/self/smaps_rollup``), what it costs beyond the shared
-    libraries; NaN where that file does not exist."""
-    try:
-        total = 0
-        with open("/proc/self/smaps_rollup") as f:
-            for line in f:
-                if line.startswith(("Private_Clean:", "Private_Dirty:")):
-                    total += int(line.split()[1])
-        return total / 1024.0
-    except (OSError, ValueError):
-        return float("nan")
-
-
-def process_figures() -> dict[str, float]:
-    """This process's figures for ``summary.json`` (``processes``): peak RSS, CPU seconds, its
-    threads (:func:`transport.zenoh_session.thread_counts`) and USS where the system gives it
-    (the codec carries finite numbers only)."""
-    figs: dict[str, float] = {"maxrss_mb": maxrss_mb(), "cpu_s": cpu_s(), **thread_counts()}
-    uss = uss_mb()
-    if math.isfinite(uss):
-        figs["uss_mb"] = uss
-    return figs
-
-
-def who_name(sender: int | None) -> str:
-    if sender is None or sender == UNKNOWN:
-        return "unknown"
-    return {PLANT_ID: "plant", MONITOR_ID: "monitor"}.get(sender, str(sender))
-
-
-class Wire:
-    """The schemas of one scenario's messages (``team``: the experiment, or an agent's
-    slice: ``n``, ``N`` and ``ny`` or ``bank_rows``)."""
-
-    def __init__(self, team: Any) -> None:
-        n, N = team.n, team.N
-        self.n, self.N = n, N
-        ny = getattr(team, "ny", None)
-        self.ny = int(sum(len(r) for r in team.bank_rows)) if ny is None else int(ny)
-        self.loc = Schema({"meas": {"y": (None,), "wait": (None, 2)}, "ctl": {"wait": (None, 2)}})
-        self.truth = Schema({"truth": {"x": (n,)}})
-        self.est = Schema({"est": {"x": (None,)}})
-        #: a done key carries a report ("done": the estimate, whom the round's messages went
-        #: to and their stamps) or, from an agent that broadcast its estimate stamped with the
-        #: round to every out-neighbour, the estimate alone ("est": see :func:`report_to`)
-        self.done = Schema({"done": {"x": (n,), "to": (None,), "stamps": (None,)}, "est": {"x": (n,)}})
-        self.ctl = Schema({"ctl": {}})
-        self.stats = Schema({"ctl": {"links": (None, 6), "rejected": (None, 3)}})
-
-
-DIAG_PREFIX = "d_"
-MAX_DIAGNOSTICS = 12  # the codec carries at most 16 metadata entries
-
-
-def diagnostics_meta(estimator: Any) -> dict[str, Any]:
-    """An estimator's diagnostics and attack flag as done-report metadata
-    (``flag``; ``d:NAME`` per finite value; a non-finite value is left out and reads as
-    missing, NaN, at the monitor)."""
-    from agents.monitor import read_diagnostics
-
-    diag, flag = read_diagnostics(estimator)
-    meta: dict[str, Any] = {}
-    if flag is not None:
-        meta["flag"] = bool(flag)
-    for name, v in list((diag or {}).items())[:MAX_DIAGNOSTICS]:
-        key = DIAG_PREFIX + name
-        if np.isfinite(v) and len(key) <= 32 and key.replace("_", "a").isalnum() and key.isascii():
-            meta[key] = float(v)  # names the codec cannot carry are left out
-    return meta
-
-
-def diagnostics_from_meta(meta: Any) -> tuple[dict[str, float], bool | None]:
-    diag = {k[len(DIAG_PREFIX):]: float(v) for k, v in meta.items()
-            if isinstance(k, str) and k.startswith(DIAG_PREFIX) and isinstance(v, (int, float)) and not isinstance(v, bool)}
-    flag = meta.get("flag")
-    return diag, (bool(flag) if isinstance(flag, bool) else None)
-
-
-class Rejects:
-    """Bad messages per claimed sender and reason."""
-
-    def __init__(self) -> None:
-        self.counts: Counter[tuple[int, str]] = Counter()
-
-    def add(self, sender: int | None, reason: str) -> None:
-        self.counts[(UNKNOWN if sender is None else sender, reason if reason in REASONS else "invalid")] += 1
-
-    def as_array(self) -> np.ndarray:
-        rows = [(s, REASONS.index(r), c) for (s, r), c in sorted(self.counts.items())]
-        return np.array(rows, dtype=float).reshape(-1, 3)
-
-    @staticmethod
-    def merge(into: dict[str, dict[str, int]], rows: np.ndarray) -> None:
-        for s, r, c in np.asarray(rows).reshape(-1, 3):
-            s, r, c = int(s), int(r), int(c)
-            if not (0 <= r < len(REASONS)) or c < 0:
-                continue
-            rec = into.setdefault(who_name(s), {"total": 0})
-            rec["total"] += c
-            rec[REASONS[r]] = rec.get(REASONS[r], 0) + c
-
-
-def _msg(kind: str, sender: int, stamp: int, arrays: dict, **kw: Any) -> bytes:
-    return encode_fields(kind, sender, stamp, arrays, **kw)
-
-
-def out_ids_of(exp: Experiment) -> dict[int, list[int]]:
-    """Agent id -> the ids of its out-neighbours (whom a broadcast report went to)."""
-    ids = exp.agent_ids
-    return {aid: [ids[j] for j in exp.out_neighbours(i)] for i, aid in enumerate(ids)}
-
-
-def report_to(m: Message, out_ids: Sequence[int], team: int) -> tuple[list[int], list[int]] | None:
-    """Whom the round of a done-key message went to and with which stamps: every one of
-    ``out_ids`` (the sender's out-neighbours) stamped with the round for an "est" (a
-    broadcast report), else :func:`receivers_of`."""
-    if m.kind == "est":
-        return list(out_ids), [m.stamp] * len(out_ids)
-    return receivers_of(m, team)
-
-
-def receivers_of(m: Message, team: int) -> tuple[list[int], list[int]] | None:
-    """A done report's receivers and stamps as ints, or None when they do not pair up,
-    are more than ``team`` or are not whole numbers in the stamps' range."""
-    to, stamps = m.arrays["to"].tolist(), m.arrays["stamps"].tolist()
-    if len(stamps) != len(to) or len(to) > team:
-        return None
-    if to:  # finite (the codec checked): whole numbers in [0, 2**53), in C loops (a report a round per peer)
-        values = to + stamps
-        if min(values) < 0 or max(values) >= 2**53 or not all(map(float.is_integer, values)):
-            return None
-    return list(map(int, to)), list(map(int, stamps))
 
 
 class Role:

@@ -7,12 +7,12 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING, Any
 
-from .protocol import RECONNECTS, UNHEARD_S
+from .config import RECONNECTS, UNHEARD_S
 
 if TYPE_CHECKING:
     from transport.zenoh_bus import Bus
 
-    from .protocol import RunConfig
+    from .config import RunConfig
 
 
 class RejoinChecks:

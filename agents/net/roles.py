@@ -16,11 +16,14 @@ from typing import TYPE_CHECKING, Any
 from transport.keys import Keys
 
 from .agent import AgentProcess, run_agent, run_agent_slice
+from .config import MODES, RunConfig
+from .figures import maxrss_mb
 from .monitor import MonitorProcess, MonitorResult, run_monitor
 from .plant import PlantProcess, run_plant
-from .protocol import MODES, Rejects, Role, RunConfig, Wire, _msg, diagnostics_from_meta, diagnostics_meta, maxrss_mb, who_name
+from .protocol import Role
 from .slices import AgentSlice, agent_slices, read_slice, write_slices
 from .view import NetworkView, ViewTopology, reads_view, simulator_order, view_topology
+from .wire import Rejects, Wire, _msg, diagnostics_from_meta, diagnostics_meta, who_name
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment

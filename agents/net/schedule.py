@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from .protocol import UNHEARD_S
+from .config import UNHEARD_S
 
 if TYPE_CHECKING:
     from .agent import AgentProcess

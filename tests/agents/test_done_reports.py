@@ -1,4 +1,4 @@
-"""A done report's receivers and stamps (``agents.net.protocol.receivers_of``): what the
+"""A done report's receivers and stamps (``agents.net.wire.receivers_of``): what the
 plant builds its wait lists from and an in-neighbour reads its estimate's stamp from, taken
 from untrusted bytes (the codec has checked shapes and finite values, not the numbers)."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agents.net.protocol import receivers_of
+from agents.net.wire import receivers_of
 from transport.codec import Message
 
 

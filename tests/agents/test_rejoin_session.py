@@ -7,9 +7,9 @@ import types
 
 import numpy as np
 
-import agents.net.agent as agent_mod
 import agents.net.monitor as monitor_mod
 import agents.net.rejoin as rejoin_mod
+import agents.net.schedule as schedule_mod
 from agents.api import load_experiment
 from agents.net.agent import AgentProcess, run_agent_slice
 from agents.net.monitor import MonitorProcess
@@ -53,7 +53,7 @@ async def _agent_among_tokens(rejoin: bool, seconds: float, hosted: int = 1) -> 
 
 
 def test_a_rejoining_agent_that_hears_no_plant_reconnects(monkeypatch):
-    monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    monkeypatch.setattr(schedule_mod, "UNHEARD_S", 0.3)
     monkeypatch.setattr(rejoin_mod, "UNHEARD_S", 0.3)
     n = asyncio.run(_agent_among_tokens(rejoin=True, seconds=2.5))
     assert 2 <= n <= rejoin_mod.RECONNECTS  # every 0.3 s after asking to join, at most RECONNECTS times
@@ -63,7 +63,7 @@ def test_agents_that_share_a_process_share_its_reconnects(monkeypatch):
     """Three rejoining agents on one session: a reconnect asked for by one while another
     runs opens no second session, and each waits UNHEARD_S after the last one, so the
     process reconnects as often as a process of one agent (not three times as often)."""
-    monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    monkeypatch.setattr(schedule_mod, "UNHEARD_S", 0.3)
     monkeypatch.setattr(rejoin_mod, "UNHEARD_S", 0.3)
     n = asyncio.run(_agent_among_tokens(rejoin=True, seconds=1.2, hosted=3))
     assert 2 <= n <= 4  # at 0.3 s after asking to join, then every 0.3 s or so: not 3 per period
@@ -81,7 +81,7 @@ def test_an_agent_waits_after_its_process_reconnected():
 
 
 def test_an_agent_of_an_assembling_team_waits(monkeypatch):
-    monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    monkeypatch.setattr(schedule_mod, "UNHEARD_S", 0.3)
     monkeypatch.setattr(rejoin_mod, "UNHEARD_S", 0.3)
     assert asyncio.run(_agent_among_tokens(rejoin=False, seconds=1.5)) == 0
 
@@ -90,7 +90,7 @@ async def _member_whose_measurements_stop(mode: str, rounds: int, seconds: float
     """Agent 1 of lee_kim_shim, a member of a running team: a stand-in plant publishes its
     measurement every 10 ms for ``rounds`` rounds, then nothing more (its token stays);
     returns how often agent 1's bus reconnected within ``seconds``."""
-    from agents.net.protocol import _msg
+    from agents.net.wire import _msg
     from transport.codec import PLANT_ID
 
     exp, _ = load_experiment(SCENARIOS / "lee_kim_shim.toml", ("run.dt=0.01",), None)
@@ -119,7 +119,7 @@ def test_a_realtime_member_whose_measurements_stop_reconnects(monkeypatch):
     """A member of a realtime team that gets no measurement for twice UNHEARD_S though the
     plant's token is there opens a new session (a link that dropped every measurement
     stays that way); while measurements come, it does not."""
-    monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    monkeypatch.setattr(schedule_mod, "UNHEARD_S", 0.3)
     monkeypatch.setattr(rejoin_mod, "UNHEARD_S", 0.3)
     assert asyncio.run(_member_whose_measurements_stop("realtime", 100, 0.0)) == 0  # 1 s of rounds: none
     n = asyncio.run(_member_whose_measurements_stop("realtime", 20, 2.0))
@@ -141,7 +141,7 @@ def test_a_member_of_a_slow_realtime_team_waits_ten_rounds():
 def test_a_lockstep_member_waits_for_its_measurements(monkeypatch):
     """Lockstep: the plant sends the next measurement once the round is done by everyone,
     so a long wait is no broken link."""
-    monkeypatch.setattr(agent_mod, "UNHEARD_S", 0.3)
+    monkeypatch.setattr(schedule_mod, "UNHEARD_S", 0.3)
     monkeypatch.setattr(rejoin_mod, "UNHEARD_S", 0.3)
     assert asyncio.run(_member_whose_measurements_stop("lockstep", 20, 1.0)) == 0
 

@@ -264,7 +264,7 @@ def test_the_views_missing_count_is_what_its_agent_sleeps_for():
 def test_a_broadcast_report_names_every_out_neighbour_at_its_round():
     """report_to: an "est" on a done key (an honest agent's estimate, broadcast) went to
     every out-neighbour stamped with its round; a "done" names its receivers itself."""
-    from agents.net.protocol import Wire, report_to
+    from agents.net.wire import Wire, report_to
     from transport.codec import decode, encode_fields
 
     exp, _ = load_experiment(SCENARIOS / "mitra_cells.toml", ("run.rounds=5", "expect=[]"), None)
