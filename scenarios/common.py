@@ -79,6 +79,10 @@ class ByzantineSpec:
 
 S = TypeVar("S")
 
+#: the Byzantine strategies of the runtime (transport.byzantine.KINDS and the schema's
+#: agent attack kinds; a test keeps the three equal): what a ThreatModel may name
+STRATEGIES = ("constant", "huge", "omission", "equivocation", "false_stamp", "replay", "crash", "cancellation")
+
 
 def estimator_section(exp: Any, cls: type[S]) -> S:
     """The scenario's ``[estimator]`` table as the plugin's own section type ``cls`` (the

@@ -136,9 +136,7 @@ def _check(mod: Any, where: str, algorithms: dict[str, str], plants: dict[str, s
 
 
 def _check_threat_model(mod: Any, where: str, est: Any, contract: str) -> None:
-    from transport.byzantine import KINDS
-
-    from ..common import ThreatModel
+    from ..common import STRATEGIES, ThreatModel
 
     tm = getattr(mod, "THREAT_MODEL", None)
     if tm is None:
@@ -148,10 +146,10 @@ def _check_threat_model(mod: Any, where: str, est: Any, contract: str) -> None:
     for what, key in (("sensors", tm.sensors), ("agents", tm.agents)):
         if key is not None and key not in est.model_fields:
             raise PluginError(f"{where}: THREAT_MODEL.{what} = {key!r} is not a field of its ESTIMATOR {contract}")
-    unknown = [s for s in tm.strategies or () if s not in KINDS]
+    unknown = [s for s in tm.strategies or () if s not in STRATEGIES]
     if unknown:
         raise PluginError(f"{where}: THREAT_MODEL.strategies: unknown strategy {unknown[0]!r}; expected some of "
-                          f"{', '.join(KINDS)}")
+                          f"{', '.join(STRATEGIES)}")
 
 
 def threat_model(name: str) -> Any:

@@ -59,6 +59,18 @@ def test_threat_model_is_enforced(path, sets, beyond, match):
         derive(api.load(path, set=sets), beyond=beyond)
 
 
+def test_the_strategy_names_agree_across_the_layers():
+    """A ThreatModel names strategies from scenarios.common.STRATEGIES (the scenario layer
+    does not import the transport): the same as the runtime's and the schema's."""
+    from typing import get_args
+
+    from scenarios.common import STRATEGIES
+    from scenarios.schema import AgentKind
+    from transport.byzantine import KINDS
+
+    assert STRATEGIES == KINDS == get_args(AgentKind)
+
+
 def test_a_declared_strategy_list_limits_the_search(monkeypatch):
     """A plugin's ``THREAT_MODEL.strategies`` is the default strategy list; naming another
     strategy in ``[redteam]`` is outside the threat model unless ``--beyond``."""
