@@ -235,6 +235,8 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
         if dup:
             raise ScenarioError(f"agents: duplicate agent id(s) {sorted(dup)}", source=source)
     N = len(agent_ids)
+    if N == 0:
+        raise ScenarioError("agents: the team has no agents (no [[agents]] and no sensor banks)", source=source)
     index_of = {aid: i for i, aid in enumerate(agent_ids)}
     agent_rows = [np.concatenate([bank_rows[b] for b in banks]).astype(int) if banks else np.zeros(0, dtype=int) for banks in agent_banks]
     for k, pt in enumerate(patrols):  # a schedule tabulates its first offset + hyper-period rounds

@@ -186,9 +186,15 @@ def _grouped(entries: list[tuple[list, str, str, Any]], data: Any) -> list[str]:
     list and the alternatives of one union each said in one line."""
     by_loc: dict[str, list[tuple[str, str, Any]]] = {}
     missing: dict[str, list] = {}
-    for loc, typ, msg, found in entries:
+    for loc, typ, _msg, _found in entries:
         if typ == "missing" and loc:
             missing.setdefault(_loc(loc[:-1]), []).append(loc[-1])
+    unknown: dict[str, list] = {}
+    for loc, typ, msg, found in entries:
+        if typ == "missing" and loc:
+            continue
+        if typ == "extra_forbidden" and loc and _loc(loc[:-1]) in missing:  # said with the table's missing keys
+            unknown.setdefault(_loc(loc[:-1]), []).append(loc[-1])
             continue
         by_loc.setdefault(_loc(loc), []).append((typ, msg, found))
     lines = []
@@ -199,10 +205,11 @@ def _grouped(entries: list[tuple[list, str, str, Any]], data: Any) -> list[str]:
         if all(isinstance(n, int) for n in names):
             value = _at(data, [p for p in _path_of(parent, entries)])
             lines.append(f"{parent}: expected {max(names) + 1} items, got {_toml(value)}")
-        elif len(names) == 1:
+        elif len(names) == 1 and parent not in unknown:
             lines.append(f"{_loc([*_path_of(parent, entries), names[0]])}: missing required key")
-        else:
-            lines.append(f"{parent}: missing required keys {', '.join(repr(n) for n in names)}")
+        elif len(names) > 1 or parent in unknown:
+            extra = f"; unknown key(s) {', '.join(repr(n) for n in unknown[parent])}" if parent in unknown else ""
+            lines.append(f"{parent}: missing required key(s) {', '.join(repr(n) for n in names)}{extra}")
     for key, msgs in by_loc.items():
         finer = [m for m in msgs if m[0] not in _EXPECTED]
         if finer:  # the value has the shape of an alternative and fails its finer check: that is the problem

@@ -326,7 +326,7 @@ class Scenario(Strict):
     run: RunSection
     plant: PlantSection
     sensors: list[SensorBank] | None = None
-    agents: list[AgentSpec] | CellPatrols | None = None
+    agents: Annotated[list[AgentSpec], Field(min_length=1)] | CellPatrols | None = None
     network: NetworkSection
     estimator: Estimator
     attacks: list[Attack] = Field(default_factory=list)

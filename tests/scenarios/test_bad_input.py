@@ -91,7 +91,7 @@ def test_union_alternatives_in_one_line():
 def test_missing_keys_and_items_in_one_line():
     d = raw("mitra_diffusion.toml")
     d["run"] = {}
-    assert message(d) == "x.toml: run: missing required keys 'name', 'dt'"
+    assert message(d) == "x.toml: run: missing required key(s) 'name', 'dt'"
     d = raw("mitra_diffusion.toml")
     d["output"] = {"window": []}
     assert message(d) == "x.toml: output.window: expected 2 items, got []"
@@ -181,3 +181,12 @@ def test_found_by_the_fuzz_an_id_or_a_list_and_an_empty_agent_list():
     d = raw("mitra_omission.toml")
     d["expect"][0]["agents"] = []  # was an IndexError in the summary
     assert message(d) == "x.toml: expect[0].agents: list should have at least 1 item after validation, not 0, got []"
+
+
+def test_found_by_the_fuzz_an_empty_team_and_a_table_with_missing_and_unknown_keys():
+    d = raw("inverters_median.toml")
+    d["agents"] = []  # was an IndexError in the monitor
+    assert message(d) == "x.toml: agents: list should have at least 1 item after validation, not 0, got []"
+    d = raw("inverters_median.toml")
+    d["agents"] = {"bogus_key": 1}
+    assert message(d) == "x.toml: agents: missing required key(s) 'kind', 'periods'; unknown key(s) 'bogus_key'"
