@@ -100,35 +100,15 @@ MONITOR_NICE = 10
 
 
 async def _role_main(spec: ChildSpec, exp: Any) -> Any:
+    """The role of ``spec`` on this process's event loop: signals and the parent watch, the
+    session and its bus (closed on every path), then the role itself."""
     from transport.keys import Keys
     from transport.zenoh_bus import ZenohBus
     from transport.zenoh_session import close_session
 
     loop = asyncio.get_running_loop()
-    task = asyncio.current_task()
     log.debug("event loop: %s", type(loop).__module__.partition(".")[0])  # uvloop or asyncio (transport.event_loop)
-
-    def stop() -> None:
-        # cancelled until it is done: asyncio.wait_for of Python 3.11 can swallow a
-        # cancellation that meets its inner future's completion (then a loop waiting for
-        # the team would go on)
-        if not task.done():
-            task.cancel()
-            loop.call_later(0.1, stop)
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, stop)
-    watcher = None
-    if spec.watch_parent:
-        parent = os.getppid()
-
-        async def watch() -> None:
-            while os.getppid() == parent:
-                await asyncio.sleep(0.5)
-            stop()
-
-        watcher = asyncio.ensure_future(watch())
+    watcher = _stop_on_signals(loop, spec.watch_parent)
     if spec.role == "monitor" and MONITOR_NICE:
         # The monitor only records: on a machine shared with the team it yields the CPU
         # to the plant and agents, whose rounds it must not slow down (lockstep bounds
@@ -146,57 +126,8 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
 
             return await run_plant(exp, bus, keys, spec.cfg)
         if spec.role == "agent":
-            from .agent import run_agent_slice
-
-            parts = exp if isinstance(exp, list) else [exp]
-            writers = []
-            if spec.out_dir:  # the delivery record (agents.deliveries), one file per agent
-                from agents.deliveries import attach
-
-                writers = attach([p.node for p in parts], spec.out_dir)
-            try:
-                if isinstance(exp, list):  # several agents: one task each over this one session
-                    return await asyncio.gather(*(run_agent_slice(part, bus, keys, spec.cfg, rejoin=spec.rejoin)
-                                                  for part in exp))
-                return await run_agent_slice(exp, bus, keys, spec.cfg, rejoin=spec.rejoin)
-            finally:
-                for w in writers:
-                    w.close()
-        conn = spec.conn
-
-        def progress(kind: str, data: Any) -> None:
-            if conn is not None:
-                try:
-                    conn.send((kind, data))
-                except (OSError, ValueError):
-                    pass
-
-        out = Path(spec.out_dir) if spec.out_dir else None
-        dash = None
-        try:
-            if spec.dashboard is not None:
-                from agents.dashboard import Dashboard
-
-                # one recording per run: its id is the run id
-                dash = Dashboard(exp, run_id=spec.run_id, options=spec.dashboard)
-                progress("urls", dict(spec.dashboard.urls))
-            from .monitor import run_monitor
-
-            if out is not None:  # who records this run now (the launcher waits for a rejoined monitor)
-                claim(out)
-            res = await run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress, dashboard=dash,
-                                    resume=spec.resume)
-            if dash is not None and spec.dashboard.serve_web:
-                # the run is over: keep serving the recording until SIGINT / SIGTERM
-                bus.close()
-                progress("serving", dict(spec.dashboard.urls))
-                await asyncio.Event().wait()
-            return res
-        finally:
-            if dash is not None:
-                dash.close()
-            if out is not None:
-                release(out, exp)
+            return await _agents(spec, exp, bus, keys)
+        return await _monitor(spec, exp, bus, keys)
     finally:
         if watcher is not None:
             watcher.cancel()
@@ -204,6 +135,95 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
             bus.close()
             session = bus.session  # a new one after bus.reconnect()
         close_session(session)
+
+
+def _stop_on_signals(loop: Any, watch_parent: bool) -> Any:
+    """SIGINT and SIGTERM cancel the running task (and so does the parent's death, with
+    ``watch_parent``: returns that watch's task, else None)."""
+    task = asyncio.current_task()
+    assert task is not None  # called from the role's coroutine
+
+    def stop() -> None:
+        # cancelled until it is done: asyncio.wait_for of Python 3.11 can swallow a
+        # cancellation that meets its inner future's completion (then a loop waiting for
+        # the team would go on)
+        if not task.done():
+            task.cancel()
+            loop.call_later(0.1, stop)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, stop)
+    if not watch_parent:
+        return None
+    parent = os.getppid()
+
+    async def watch() -> None:
+        while os.getppid() == parent:
+            await asyncio.sleep(0.5)
+        stop()
+
+    return asyncio.ensure_future(watch())
+
+
+async def _agents(spec: ChildSpec, exp: Any, bus: Any, keys: Any) -> Any:
+    """The agent (or the agents: one task each over this one session) of this process,
+    recording their deliveries (agents.deliveries, one file per agent) where there is a run directory."""
+    from .agent import run_agent_slice
+
+    parts = exp if isinstance(exp, list) else [exp]
+    writers = []
+    if spec.out_dir:
+        from agents.deliveries import attach
+
+        writers = attach([p.node for p in parts], spec.out_dir)
+    try:
+        if isinstance(exp, list):
+            return await asyncio.gather(*(run_agent_slice(part, bus, keys, spec.cfg, rejoin=spec.rejoin) for part in exp))
+        return await run_agent_slice(exp, bus, keys, spec.cfg, rejoin=spec.rejoin)
+    finally:
+        for w in writers:
+            w.close()
+
+
+async def _monitor(spec: ChildSpec, exp: Any, bus: Any, keys: Any) -> Any:
+    """The monitor: its dashboard, its claim on the run directory, the rounds, and with a
+    served viewer the wait after the run until SIGINT / SIGTERM."""
+    from .monitor import run_monitor
+
+    conn = spec.conn
+
+    def progress(kind: str, data: Any) -> None:
+        if conn is not None:
+            try:
+                conn.send((kind, data))
+            except (OSError, ValueError):
+                pass
+
+    out = Path(spec.out_dir) if spec.out_dir else None
+    dash = None
+    try:
+        if spec.dashboard is not None:
+            from agents.dashboard import Dashboard
+
+            # one recording per run: its id is the run id
+            dash = Dashboard(exp, run_id=spec.run_id, options=spec.dashboard)
+            progress("urls", dict(spec.dashboard.urls))
+        if out is not None:  # who records this run now (the launcher waits for a rejoined monitor)
+            claim(out)
+        res = await run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress, dashboard=dash,
+                                resume=spec.resume)
+        if dash is not None and spec.dashboard.serve_web:
+            # the run is over: keep serving the recording until SIGINT / SIGTERM
+            bus.close()
+            progress("serving", dict(spec.dashboard.urls))
+            await asyncio.Event().wait()
+        return res
+    finally:
+        if dash is not None:
+            dash.close()
+        if out is not None:
+            release(out, exp)
 
 
 def _blob(b: bytes | str) -> bytes:

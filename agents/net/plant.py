@@ -184,6 +184,24 @@ class PlantProcess(Role):
                                                    meta={"member": member, "nomeas": rows is None}),
                          droppable=self.cfg.mode != "lockstep")
 
+    def _missed_deadline(self, k: int, late: list[int]) -> None:
+        """Lockstep: the agents whose round-``k`` reports missed the deadline (counted, said
+        at the 1st, 10th, 100th and 1000th time)."""
+        for a in late:
+            self.missed[a] += 1
+            if self.missed[a] in (1, 10, 100, 1000):
+                log.warning("plant: agent %d missed the %g s deadline in round %d (%d time(s))",
+                            a, self.cfg.deadline, k, self.missed[a])
+
+    async def _monitor_catches_up(self, k: int) -> None:
+        """Lockstep: the monitor only records; without it the team goes on, and a live monitor
+        more than MAX_AHEAD rounds behind is waited for as it catches up."""
+        monitor = ("monitor", 0)
+        if monitor in self.alive and k - self.monitor_ack > MAX_AHEAD:
+            if not await self.wait_for(lambda: k - self.monitor_ack <= MAX_AHEAD // 2 or monitor not in self.alive,
+                                       self.cfg.startup_timeout):
+                raise TransportError(f"the monitor stopped acknowledging rounds (last {self.monitor_ack})")
+
     async def _rounds(self) -> dict[str, Any]:
         exp, keys, bus, cfg, plant = self.exp, self.keys, self.bus, self.cfg, self.plant
         K = exp.n_rounds
@@ -230,19 +248,8 @@ class PlantProcess(Role):
                     await asyncio.sleep(0)
                     finished = finished_()
                 if not finished:
-                    late = sorted(a for a in expected if a not in rnd and a in self.members)
-                    for a in late:
-                        self.missed[a] += 1
-                        if self.missed[a] in (1, 10, 100, 1000):
-                            log.warning("plant: agent %d missed the %g s deadline in round %d (%d time(s))",
-                                        a, cfg.deadline, k, self.missed[a])
-                # the monitor only records: without it the team goes on (and a monitor that
-                # rejoins is waited for as it catches up)
-                monitor = ("monitor", 0)
-                if monitor in self.alive and k - self.monitor_ack > MAX_AHEAD:
-                    if not await self.wait_for(lambda k=k, monitor=monitor: k - self.monitor_ack <= MAX_AHEAD // 2 or monitor not in self.alive,
-                                               cfg.startup_timeout):
-                        raise TransportError(f"the monitor stopped acknowledging rounds (last {self.monitor_ack})")
+                    self._missed_deadline(k, sorted(a for a in expected if a not in rnd and a in self.members))
+                await self._monitor_catches_up(k)
             if period is not None:
                 delay = t0 + (k + 1) * period - time.monotonic()
                 if delay > 0:

@@ -56,6 +56,40 @@ def zenoh_error_line(exc: BaseException) -> str:
     return re.sub(r"\s+at \S+\.rs:\d+\.?(?=\]|\s|\Z)", "", text).rstrip(".") + "."
 
 
+def _base_config(config_file: Path | None) -> Any:
+    """``zenoh.Config()``, or the one of a user's file (a bad file is one line naming it)."""
+    import zenoh
+
+    if config_file is None:
+        return zenoh.Config()
+    path = Path(config_file)
+    if not path.is_file():
+        raise ScenarioError(f"--config {path}: no such file")
+    try:
+        return zenoh.Config.from_file(str(path))
+    except Exception as exc:  # zenoh.ZError: not JSON5 / YAML, unknown keys, ...
+        raise ScenarioError(f"--config {path}: not a valid Zenoh configuration: {zenoh_error_line(exc)}") from None
+
+
+def _listen_endpoints(listen: Sequence[str], conf: Any) -> list[str]:
+    """The endpoints given, else the config file's ``listen/endpoints``, else :data:`DEFAULT_LISTEN`."""
+    from transport.zenoh_session import normalize_endpoint
+
+    try:
+        eps = [normalize_endpoint(e) for e in listen]
+    except ValueError as exc:
+        raise ScenarioError(f"--listen: {exc}") from None
+    if eps:
+        return eps
+    try:
+        found = json.loads(str(conf)).get("listen", {}).get("endpoints") or []
+    except ValueError:
+        found = []
+    if isinstance(found, dict):  # per-mode form {router: [...], peer: [...]}
+        found = found.get("router") or []
+    return list(found) or [DEFAULT_LISTEN]
+
+
 def router_config(
     listen: Sequence[str] = (),
     *,
@@ -90,32 +124,10 @@ def router_config(
     ScenarioError
         A bad endpoint or config file, missing certificates (one line naming it).
     """
-    import zenoh
-
     from transport import secure as sec
-    from transport.zenoh_session import normalize_endpoint
 
-    conf = zenoh.Config()
-    if config_file is not None:
-        path = Path(config_file)
-        if not path.is_file():
-            raise ScenarioError(f"--config {path}: no such file")
-        try:
-            conf = zenoh.Config.from_file(str(path))
-        except Exception as exc:  # zenoh.ZError: not JSON5 / YAML, unknown keys, ...
-            raise ScenarioError(f"--config {path}: not a valid Zenoh configuration: {zenoh_error_line(exc)}") from None
-    try:
-        eps = [normalize_endpoint(e) for e in listen]
-    except ValueError as exc:
-        raise ScenarioError(f"--listen: {exc}") from None
-    if not eps:
-        try:
-            eps = list(json.loads(str(conf)).get("listen", {}).get("endpoints") or [])
-        except ValueError:
-            eps = []
-        if isinstance(eps, dict):  # per-mode form {router: [...], peer: [...]}
-            eps = list(eps.get("router") or [])
-        eps = eps or [DEFAULT_LISTEN]
+    conf = _base_config(config_file)
+    eps = _listen_endpoints(listen, conf)
     if secure is not None:
         try:
             eps = [sec.secure_endpoint(e) for e in eps]

@@ -179,115 +179,133 @@ async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: 
     session = open_session(opts)
     bus = ZenohBus(session, asyncio.get_running_loop())
     q: asyncio.Queue = asyncio.Queue(maxsize=1 << 16)
-    ids = sizes.agents
-    N = len(ids)
     try:
         if minimal:
             await _minimal(role, idx, sizes, rounds, keys, bus, q, conn)
         elif role == "plant":
-            bus.subscribe(keys.ctl_pattern("done"), q)
-            bus.subscribe(keys.ctl_pattern("ready"), q)
-            bus.watch(keys.alive_pattern(), q)
-            bus.announce(keys.alive("plant", 0))
-            ready: set[str] = set()
-            monitor = False
-            while len(ready) < N or not monitor:
-                key, p = await q.get()
-                if type(p) is bool:
-                    monitor = monitor or (p and "/alive/monitor/" in key)
-                elif "/ready/" in key:
-                    ready.add(key)
-            loc = [keys.plant_loc(a) for a in ids]
-            truth = keys.plant_truth()
-            t0 = time.perf_counter()
-            for k in range(rounds):
-                bus.publish(truth, _payload(sizes.truth, k))
-                for i in range(N):
-                    bus.publish(loc[i], _payload(sizes.meas[i], k))
-                got = 0
-                while got < N:
-                    key, p = await q.get()
-                    if type(p) is bytes and "/done/" in key and _STAMP.unpack_from(p)[0] == k:
-                        got += 1
-            elapsed = time.perf_counter() - t0
-            for i in range(N):
-                bus.publish(loc[i], _STAMP.pack(-1))
-            bus.publish(truth, _STAMP.pack(-1))
-            conn.send({"rounds": rounds, "elapsed": elapsed, "rounds_per_s": rounds / elapsed})
-            await asyncio.sleep(0.05)
+            await _plant(sizes, rounds, keys, bus, q, conn)
         elif role == "monitor":
-            bus.subscribe(keys.plant_truth(), q)
-            bus.subscribe(keys.ctl_pattern("done"), q)
-            bus.announce(keys.alive("monitor", 0))
-            count = 0
-            while True:
-                key, p = await q.get()
-                count += 1
-                if key.endswith("/truth") and _STAMP.unpack_from(p)[0] < 0:
-                    break
+            await _monitor(keys, bus, q)
         else:
-            me = ids[idx]
-            ins = sizes.in_ids[idx]
-            addressed = sizes.addressed[idx] if sizes.addressed else ()
-            needed = set(sizes.needed[idx]) if sizes.needed else set()
-            bus.subscribe(keys.plant_loc(me), q)
-            for j in sorted(set(ins) | needed):
-                bus.subscribe(keys.est(j), q)
-            bus.subscribe(keys.est_pattern(to=me), q)
-            if needed:  # the omniscient adversary's subscriptions (its receivers' messages by sender, as the runtime's)
-                for s, j in sizes.reads[idx]:
-                    bus.subscribe(keys.est(s, j), q)
-                for j in sorted(needed):
-                    bus.subscribe(keys.ctl("done", j), q)
-            bus.watch(keys.alive_pattern(), q)
-            bus.announce(keys.alive("agent", me))
-            need = {"plant", "monitor"} | {str(j) for j in ins}
-            seen: set[str] = set()
-            est_key, done_key = keys.est(me), keys.ctl("done", me)
-            arrived: dict[int, int] = {}
-            heard: dict[int, set[int]] = {}  # round -> needed agents whose estimate arrived
-            addr_keys = [keys.est(me, j) for j in addressed]
-            meas_k: int | None = None
-            sent_ready = False
-            while True:
-                if not sent_ready and need <= seen:
-                    bus.publish(keys.ctl("ready", me), b"r")
-                    sent_ready = True
-                try:
-                    key, p = await asyncio.wait_for(q.get(), 0.1) if not sent_ready else await q.get()
-                except TimeoutError:
-                    continue
-                if type(p) is bool:
-                    parts = key.split("/")
-                    seen.add(parts[-2] if parts[-2] != "agent" else parts[-1])
-                    continue
-                k = _STAMP.unpack_from(p)[0]
-                if "/plant/loc/" in key:
-                    if k < 0:
-                        break
-                    meas_k = k
-                elif "/ctl/done/" not in key:
-                    parts = key.split("/")
-                    sender = int(parts[-2] if parts[-1] == "est" else parts[-3])
-                    to_me = parts[-1] == "est" or int(parts[-1]) == me
-                    if to_me and sender in ins:
-                        arrived[k] = arrived.get(k, 0) + 1
-                    if sender in needed:
-                        heard.setdefault(k, set()).add(sender)
-                if (meas_k is not None and (meas_k == 0 or arrived.get(meas_k - 1, 0) >= len(ins))
-                        and needed <= heard.get(meas_k, set())):
-                    arrived.pop(meas_k - 1, None)
-                    heard.pop(meas_k, None)
-                    if addressed:
-                        for ak in addr_keys:
-                            bus.publish(ak, _payload(sizes.est, meas_k))
-                    else:
-                        bus.publish(est_key, _payload(sizes.est, meas_k))
-                    bus.publish(done_key, _payload(sizes.done[idx], meas_k))
-                    meas_k = None
+            await _agent(idx, sizes, keys, bus, q)
     finally:
         bus.close()
         close_session(session)
+
+
+async def _plant(sizes: Sizes, rounds: int, keys: Any, bus: Any, q: asyncio.Queue, conn: Any) -> None:
+    """The full-pattern plant: waits for every agent's ready and the monitor, then ``rounds``
+    rounds of truth and measurements, each ended by every agent's done; sends the rate."""
+    ids = sizes.agents
+    N = len(ids)
+    bus.subscribe(keys.ctl_pattern("done"), q)
+    bus.subscribe(keys.ctl_pattern("ready"), q)
+    bus.watch(keys.alive_pattern(), q)
+    bus.announce(keys.alive("plant", 0))
+    ready: set[str] = set()
+    monitor = False
+    while len(ready) < N or not monitor:
+        key, p = await q.get()
+        if type(p) is bool:
+            monitor = monitor or (p and "/alive/monitor/" in key)
+        elif "/ready/" in key:
+            ready.add(key)
+    loc = [keys.plant_loc(a) for a in ids]
+    truth = keys.plant_truth()
+    t0 = time.perf_counter()
+    for k in range(rounds):
+        bus.publish(truth, _payload(sizes.truth, k))
+        for i in range(N):
+            bus.publish(loc[i], _payload(sizes.meas[i], k))
+        got = 0
+        while got < N:
+            key, p = await q.get()
+            if type(p) is bytes and "/done/" in key and _STAMP.unpack_from(p)[0] == k:
+                got += 1
+    elapsed = time.perf_counter() - t0
+    for i in range(N):
+        bus.publish(loc[i], _STAMP.pack(-1))
+    bus.publish(truth, _STAMP.pack(-1))
+    conn.send({"rounds": rounds, "elapsed": elapsed, "rounds_per_s": rounds / elapsed})
+    await asyncio.sleep(0.05)
+
+
+async def _monitor(keys: Any, bus: Any, q: asyncio.Queue) -> None:
+    """The full-pattern monitor: hears the truth and the done reports until the plant's stop."""
+    bus.subscribe(keys.plant_truth(), q)
+    bus.subscribe(keys.ctl_pattern("done"), q)
+    bus.announce(keys.alive("monitor", 0))
+    count = 0
+    while True:
+        key, p = await q.get()
+        count += 1
+        if key.endswith("/truth") and _STAMP.unpack_from(p)[0] < 0:
+            break
+
+
+async def _agent(idx: int, sizes: Sizes, keys: Any, bus: Any, q: asyncio.Queue) -> None:
+    """A full-pattern agent: its round ``k`` once the measurement of ``k`` and its
+    in-neighbours' (and an omniscient adversary's needed) messages of ``k - 1`` are in."""
+    ids = sizes.agents
+    me = ids[idx]
+    ins = sizes.in_ids[idx]
+    addressed = sizes.addressed[idx] if sizes.addressed else ()
+    needed = set(sizes.needed[idx]) if sizes.needed else set()
+    bus.subscribe(keys.plant_loc(me), q)
+    for j in sorted(set(ins) | needed):
+        bus.subscribe(keys.est(j), q)
+    bus.subscribe(keys.est_pattern(to=me), q)
+    if needed:  # the omniscient adversary's subscriptions (its receivers' messages by sender, as the runtime's)
+        for s, j in sizes.reads[idx]:
+            bus.subscribe(keys.est(s, j), q)
+        for j in sorted(needed):
+            bus.subscribe(keys.ctl("done", j), q)
+    bus.watch(keys.alive_pattern(), q)
+    bus.announce(keys.alive("agent", me))
+    need = {"plant", "monitor"} | {str(j) for j in ins}
+    seen: set[str] = set()
+    est_key, done_key = keys.est(me), keys.ctl("done", me)
+    arrived: dict[int, int] = {}
+    heard: dict[int, set[int]] = {}  # round -> needed agents whose estimate arrived
+    addr_keys = [keys.est(me, j) for j in addressed]
+    meas_k: int | None = None
+    sent_ready = False
+    while True:
+        if not sent_ready and need <= seen:
+            bus.publish(keys.ctl("ready", me), b"r")
+            sent_ready = True
+        try:
+            key, p = await asyncio.wait_for(q.get(), 0.1) if not sent_ready else await q.get()
+        except TimeoutError:
+            continue
+        if type(p) is bool:
+            parts = key.split("/")
+            seen.add(parts[-2] if parts[-2] != "agent" else parts[-1])
+            continue
+        k = _STAMP.unpack_from(p)[0]
+        if "/plant/loc/" in key:
+            if k < 0:
+                break
+            meas_k = k
+        elif "/ctl/done/" not in key:
+            parts = key.split("/")
+            sender = int(parts[-2] if parts[-1] == "est" else parts[-3])
+            to_me = parts[-1] == "est" or int(parts[-1]) == me
+            if to_me and sender in ins:
+                arrived[k] = arrived.get(k, 0) + 1
+            if sender in needed:
+                heard.setdefault(k, set()).add(sender)
+        if (meas_k is not None and (meas_k == 0 or arrived.get(meas_k - 1, 0) >= len(ins))
+                and needed <= heard.get(meas_k, set())):
+            arrived.pop(meas_k - 1, None)
+            heard.pop(meas_k, None)
+            if addressed:
+                for ak in addr_keys:
+                    bus.publish(ak, _payload(sizes.est, meas_k))
+            else:
+                bus.publish(est_key, _payload(sizes.est, meas_k))
+            bus.publish(done_key, _payload(sizes.done[idx], meas_k))
+            meas_k = None
 
 
 def _child(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: Any, conn: Any, minimal: bool = False) -> None:
