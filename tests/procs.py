@@ -78,3 +78,15 @@ def wait_json(path: Path, timeout: float) -> dict:
         except (OSError, ValueError):
             time.sleep(0.05)
     raise AssertionError(f"{path} did not appear within {timeout} s")
+
+
+def until(cond, timeout: float, act=None) -> bool:
+    """Whether ``cond()`` holds within ``timeout`` seconds (``act()`` before each look)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if act is not None:
+            act()
+        if cond():
+            return True
+        time.sleep(0.05)
+    return cond()

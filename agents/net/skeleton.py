@@ -36,6 +36,7 @@ import os
 import struct
 import sys
 import time
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -101,6 +102,26 @@ def _payload(size: int, k: int) -> bytes:
     return _STAMP.pack(k) + bytes(max(0, size - 8))
 
 
+async def _joined(q: asyncio.Queue, bus: Any, keys: Any, me: int, need: set[str]) -> AsyncIterator[tuple[str, bytes]]:
+    """An agent's data items, after its join: it notes the liveliness tokens it sees, sends
+    ``ready`` once every process of ``need`` is seen, and yields every other item."""
+    seen: set[str] = set()
+    sent_ready = False
+    while True:
+        if not sent_ready and need <= seen:
+            bus.publish(keys.ctl("ready", me), b"r")
+            sent_ready = True
+        try:
+            key, p = await asyncio.wait_for(q.get(), 0.1) if not sent_ready else await q.get()
+        except TimeoutError:
+            continue
+        if type(p) is bool:
+            parts = key.split("/")
+            seen.add(parts[-2] if parts[-2] != "agent" else parts[-1])
+            continue
+        yield key, p
+
+
 async def _minimal(role: str, idx: int, sizes: Sizes, rounds: int, keys: Any, bus: Any, q: asyncio.Queue,
                    conn: Any) -> None:
     """The minimal lockstep skeleton: a clock ticks once per round (8 bytes); each agent,
@@ -138,23 +159,10 @@ async def _minimal(role: str, idx: int, sizes: Sizes, rounds: int, keys: Any, bu
     bus.watch(keys.alive_pattern(), q)
     bus.announce(keys.alive("agent", me))
     need = {"plant"} | {str(j) for j in ins}
-    seen: set[str] = set()
     est_key, done_key = keys.est(me), keys.ctl("done", me)
     arrived: dict[int, int] = {}
     tick_k: int | None = None
-    sent_ready = False
-    while True:
-        if not sent_ready and need <= seen:
-            bus.publish(keys.ctl("ready", me), b"r")
-            sent_ready = True
-        try:
-            key, p = await asyncio.wait_for(q.get(), 0.1) if not sent_ready else await q.get()
-        except TimeoutError:
-            continue
-        if type(p) is bool:
-            parts = key.split("/")
-            seen.add(parts[-2] if parts[-2] != "agent" else parts[-1])
-            continue
+    async for key, p in _joined(q, bus, keys, me, need):
         k = _STAMP.unpack_from(p)[0]
         if key == tick:
             if k < 0:
@@ -263,25 +271,12 @@ async def _agent(idx: int, sizes: Sizes, keys: Any, bus: Any, q: asyncio.Queue) 
     bus.watch(keys.alive_pattern(), q)
     bus.announce(keys.alive("agent", me))
     need = {"plant", "monitor"} | {str(j) for j in ins}
-    seen: set[str] = set()
     est_key, done_key = keys.est(me), keys.ctl("done", me)
     arrived: dict[int, int] = {}
     heard: dict[int, set[int]] = {}  # round -> needed agents whose estimate arrived
     addr_keys = [keys.est(me, j) for j in addressed]
     meas_k: int | None = None
-    sent_ready = False
-    while True:
-        if not sent_ready and need <= seen:
-            bus.publish(keys.ctl("ready", me), b"r")
-            sent_ready = True
-        try:
-            key, p = await asyncio.wait_for(q.get(), 0.1) if not sent_ready else await q.get()
-        except TimeoutError:
-            continue
-        if type(p) is bool:
-            parts = key.split("/")
-            seen.add(parts[-2] if parts[-2] != "agent" else parts[-1])
-            continue
+    async for key, p in _joined(q, bus, keys, me, need):
         k = _STAMP.unpack_from(p)[0]
         if "/plant/loc/" in key:
             if k < 0:

@@ -18,6 +18,7 @@ import pytest
 
 from tests.conftest import SCENARIOS
 from tests.deploy.conftest import Procs, rse_cmd
+from tests.procs import until
 
 pytest.importorskip("cryptography", reason="rse certs needs the cryptography package (pip install '.[secure]')")
 
@@ -81,17 +82,6 @@ def net(router, certs):
         yield n
 
 
-def _until(cond, timeout: float, act=None) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if act is not None:
-            act()
-        if cond():
-            return True
-        time.sleep(0.05)
-    return cond()
-
-
 def test_without_credentials_nothing_connects_or_gets_through(net, certs, tmp_path):
     """No certificate, a certificate of another CA (even with the CN agent-2), plain TCP:
     the router refuses the session; a real subscriber (agent 1) hears nothing of them,
@@ -126,7 +116,7 @@ def test_without_credentials_nothing_connects_or_gets_through(net, certs, tmp_pa
             close_session(s)
     # none of them got a session: once agent 2's genuine message is heard, nothing else was
     good = net.open("agent-2")
-    assert _until(lambda: got, WAIT_S, lambda: good.put(f"rse/{RUN}/agent/2/est", b"genuine"))
+    assert until(lambda: got, WAIT_S, lambda: good.put(f"rse/{RUN}/agent/2/est", b"genuine"))
     assert {v for _, v in got} == {b"genuine"}
 
 
@@ -161,13 +151,13 @@ def test_an_agent_cannot_speak_for_another_agent_or_the_plant(net):
                 if reply.ok is not None:
                     tokens.append(str(reply.ok.key_expr))
 
-    ok = _until(lambda: (f"rse/{RUN}/agent/2/est", b"own") in heard and (f"rse/{RUN}/ctl/done/2", b"own") in heard_mon
+    ok = until(lambda: (f"rse/{RUN}/agent/2/est", b"own") in heard and (f"rse/{RUN}/ctl/done/2", b"own") in heard_mon
                 and f"rse/{RUN}/alive/agent/2" in tokens, WAIT_S, send_and_ask)
     for _ in range(5):
         send()
     # the last word, after the forged ones on the same session: once it is heard, whatever the
     # router let through before it has been heard too
-    assert _until(lambda: (f"rse/{RUN}/agent/2/est", b"last") in heard, WAIT_S, lambda: a2.put(f"rse/{RUN}/agent/2/est", b"last"))
+    assert until(lambda: (f"rse/{RUN}/agent/2/est", b"last") in heard, WAIT_S, lambda: a2.put(f"rse/{RUN}/agent/2/est", b"last"))
     assert ok, (heard, heard_mon, tokens)
     assert not [k for k, v in heard + heard_mon if v == b"forged"], (heard, heard_mon)
     assert f"rse/{RUN}/alive/agent/2" in tokens and f"rse/{RUN}/alive/agent/3" not in tokens, tokens
@@ -187,11 +177,11 @@ def test_only_the_monitor_hears_the_true_state(net):
         plant.put(f"rse/{RUN}/plant/truth", b"x")
         plant.put(f"rse/{RUN}/plant/loc/3", b"y3")
 
-    assert _until(lambda: got_mon and (f"rse/{RUN}/plant/loc/3", b"y3") in got_a3, WAIT_S, send), (got_mon, got_a3)
+    assert until(lambda: got_mon and (f"rse/{RUN}/plant/loc/3", b"y3") in got_a3, WAIT_S, send), (got_mon, got_a3)
     send()
     # the last word on the one key agent 3 may hear, after the truth: once it is heard, a truth
     # the router let through would have been heard too
-    assert _until(lambda: (f"rse/{RUN}/plant/loc/3", b"last") in got_a3, WAIT_S,
+    assert until(lambda: (f"rse/{RUN}/plant/loc/3", b"last") in got_a3, WAIT_S,
                   lambda: plant.put(f"rse/{RUN}/plant/loc/3", b"last"))
     assert {k for k, _ in got_mon} == {f"rse/{RUN}/plant/truth"}
     assert {k for k, _ in got_a3} == {f"rse/{RUN}/plant/loc/3"}, got_a3
@@ -231,7 +221,7 @@ def test_rse_run_secure_sigterm_stops_every_process_and_the_router_within_2_s(ce
     try:
         p = ps.start(rse_cmd("run", str(LKS), "--set", "run.dt=0.01", "--mode", "realtime", "--rate", "50",
                              "--secure", str(certs), "--router", "--out", str(out), "--no-progress", "--no-rerun"))
-        assert _until(lambda: _round(out) > 5, 300), p.poll() is None or p.communicate()
+        assert until(lambda: _round(out) > 5, 300), p.poll() is None or p.communicate()
         team = json.loads((out / "team.json").read_text())
         assert "router" in team["pids"]
         children = [psutil.Process(pid) for pid in team["pids"].values()]

@@ -20,6 +20,7 @@ import pytest
 
 from tests.conftest import SCENARIOS
 from tests.deploy.conftest import Procs, rse_cmd
+from tests.procs import until
 
 pytest.importorskip("cryptography", reason="rse certs needs the cryptography package (pip install '.[secure]')")
 
@@ -37,17 +38,6 @@ def certs(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("certs")
     write_certs(d, ["plant", "monitor", *(f"agent-{i}" for i in range(1, 17))])
     return d
-
-
-def _until(cond, timeout: float, act=None) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if act is not None:
-            act()
-        if cond():
-            return True
-        time.sleep(0.05)
-    return cond()
 
 
 def _run(args: list[str], timeout: float = 600) -> tuple[int, str]:
@@ -138,12 +128,12 @@ def test_without_a_certificate_no_message_is_exchanged(certs, tmp_path):
             good.put("rse/p2p/agent/2/est", b"genuine")
             a1.put("rse/p2p/agent/1/est", b"from agent 1")
 
-        assert _until(lambda: b"genuine" in heard["agent-1"] and heard["agent-2"], WAIT_S, send), heard
+        assert until(lambda: b"genuine" in heard["agent-1"] and heard["agent-2"], WAIT_S, send), heard
         for _ in range(20):
             send()
             time.sleep(0.02)
         # the last words, after everything the outsiders sent on their (would-be) links
-        assert _until(lambda: b"last" in heard["agent-1"], WAIT_S, lambda: good.put("rse/p2p/agent/2/est", b"last"))
+        assert until(lambda: b"last" in heard["agent-1"], WAIT_S, lambda: good.put("rse/p2p/agent/2/est", b"last"))
     finally:
         for s in sessions:
             close_session(s)
@@ -211,7 +201,7 @@ def test_an_insider_cannot_speak_for_another_agent(certs, tmp_path):
     try:
         p = ps.start(rse_cmd("run", str(LKS), "--set", ov[0], "--secure", str(certs), "--out", str(out),
                              "--save-estimates", "--no-progress", "--no-rerun", "--deadline", "30", "--rate", "400"))
-        assert _until(lambda: (out / "team.json").is_file(), WAIT_S), p.poll() is None or p.communicate()
+        assert until(lambda: (out / "team.json").is_file(), WAIT_S), p.poll() is None or p.communicate()
         time.sleep(0.2)
         insider = Insider(certs, json.loads((out / "team.json").read_text()))
         _so, se = p.communicate(timeout=600)
@@ -251,7 +241,7 @@ def test_a_realtime_secure_team_survives_sigkill_of_an_agent_and_of_the_monitor(
         p = ps.start(rse_cmd("run", str(LKS), "--set", "run.dt=0.01", "--set", "run.duration=600", "--set", "expect=[]",
                              "--mode", "realtime", "--rate", "100", "--secure", str(certs), "--out", str(out),
                              "--no-progress", "--no-rerun"))
-        assert _until(lambda: _round(out) > 100, 300), p.poll() is None or p.communicate()
+        assert until(lambda: _round(out) > 100, 300), p.poll() is None or p.communicate()
         team = json.loads((out / "team.json").read_text())
         assert team["router"] is None
         killed_at = _round(out)
@@ -262,7 +252,7 @@ def test_a_realtime_secure_team_survives_sigkill_of_an_agent_and_of_the_monitor(
         lines: list[str] = []
         reader = threading.Thread(target=lambda: lines.extend(iter(mon.stderr.readline, "")), daemon=True)
         reader.start()
-        assert _until(lambda: any("rejoined the team at round" in ln for ln in lines) or mon.poll() is not None, 120)
+        assert until(lambda: any("rejoined the team at round" in ln for ln in lines) or mon.poll() is not None, 120)
         line = next((ln for ln in lines if "rejoined the team at round" in ln), "")
         assert line, lines
         at = int(line.split("rejoined the team at round")[1].split()[0].strip(" .,:;"))
