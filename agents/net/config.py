@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["RunConfig", "MODES", "QUEUE_SIZE", "MONITOR_LAG", "ACK_EVERY", "UNHEARD_S", "RECONNECTS", "LAZY",
+__all__ = ["RunConfig", "MODES", "QUEUE_SIZE", "MONITOR_LAG", "ACK_EVERY", "UNHEARD_S", "TOKENS_SETTLE_S", "RECONNECTS", "LAZY",
            "MAX_AHEAD"]
 
 MODES = ("lockstep", "realtime")
@@ -16,6 +16,7 @@ ACK_EVERY = 32
 #: a process that rejoined a running team and hears nothing from some peer for this long
 #: opens a new session (transport.zenoh_bus.ZenohBus.reconnect), at most RECONNECTS times
 UNHEARD_S = 3.0
+TOKENS_SETTLE_S = 1.0  # a rejoining monitor: no new token for this long before its record starts
 RECONNECTS = 5
 #: lazy items wake a role that set no other bound once this many wait (see Role.lazy_items)
 LAZY = QUEUE_SIZE // 2

@@ -19,7 +19,7 @@ from transport.codec import MONITOR_ID, PLANT_ID, Message
 from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
-from .config import ACK_EVERY, MONITOR_LAG, RECONNECTS, UNHEARD_S, RunConfig
+from .config import ACK_EVERY, MONITOR_LAG, RECONNECTS, TOKENS_SETTLE_S, UNHEARD_S, RunConfig
 from .figures import process_figures
 from .protocol import Role
 from .wire import Rejects, _msg, diagnostics_from_meta, out_ids_of, report_to, who_name
@@ -72,6 +72,7 @@ class MonitorProcess(Role):
         self.progress = progress or (lambda kind, data: None)
         self.rounds: dict[int, _Round] = {}
         self._listening_since = time.monotonic()
+        self._last_join = self._listening_since  # a rejoining monitor waits for the tokens to settle
         self.next_k = 0
         self.max_truth = -1
         self.stop_round: int | None = None
@@ -162,6 +163,8 @@ class MonitorProcess(Role):
     def on_alive(self, role: str, i: int, alive: bool) -> None:
         if role == "agent":
             self.unseen.discard(i)
+        if alive:
+            self._last_join = time.monotonic()
         # after_stop: the plant has stopped the run (a process that ends then has finished, not left early)
         event = {"t_wall": round(time.monotonic() - self.t0, 3), "round": self.next_k, "role": role, "id": i,
                  "event": "join" if alive else "leave", "after_stop": self.stop_round is not None}
@@ -268,6 +271,17 @@ class MonitorProcess(Role):
         n, heard = self._reports_held()
         return [aid for aid, c in heard.items() if c == 0] if n >= 20 else []
 
+    def _tokens_settled(self) -> bool:
+        """A rejoining monitor learns the members from their tokens, which reach it peer by
+        peer: it takes a round as whole only once no token has come for TOKENS_SETTLE_S and
+        every agent it holds a report of has shown its token (else a round whole for the
+        members seen so far would start the record, and every later round would lack the
+        member whose link came up last)."""
+        if time.monotonic() - self._last_join < TOKENS_SETTLE_S:
+            return False
+        live = {aid for (role, aid) in self.alive if role == "agent"}
+        return all(aid in live for aid, i in self.index.items() if any(r.present[i] for r in self.rounds.values()))
+
     def _complete(self, r: _Round) -> bool:
         # not before the plant's token: until then this process does not know the team (a
         # monitor that subscribes late gets the tokens present in one batch, which through
@@ -283,7 +297,8 @@ class MonitorProcess(Role):
         if not self.synced:
             # a rejoining monitor starts at the first round it has whole (truth and every
             # live agent's report): its subscriptions reach the team's peers one by one
-            first = next((k for k in sorted(self.rounds) if self._complete(self.rounds[k])), None)
+            first = (next((k for k in sorted(self.rounds) if self._complete(self.rounds[k])), None)
+                     if self._tokens_settled() else None)
             if first is None:
                 self._not_synced_yet()
                 return
