@@ -177,7 +177,10 @@ class ZenohBus(Bus):
         if pub is None:
             z = self._zenoh
             cc = z.CongestionControl.DROP if droppable else z.CongestionControl.BLOCK
-            pub = self.session.declare_publisher(key, congestion_control=cc, express=True,
+            # a priority of their own: a BLOCK message waiting for room in a link's queue
+            # holds up every message of its priority on that link (eclipse-zenoh/zenoh#2584)
+            prio = z.Priority.DATA_HIGH if droppable else z.Priority.DATA
+            pub = self.session.declare_publisher(key, congestion_control=cc, express=True, priority=prio,
                                                  reliability=z.Reliability.RELIABLE)
             self._publishers[(key, droppable)] = pub
         pub.put(payload)

@@ -196,10 +196,13 @@ class SessionOptions:
         First retry period of a ``connect`` endpoint that is not up yet (Zenoh's default
         when None: 1 s, backing off to 4 s); the period then grows by half up to 1 s.
     small_links : bool
-        Small per-link buffers for many links of small messages: one transmission queue
-        per link instead of one per priority (QoS off, negotiated per link), batches of
+        Small per-link buffers for many links of small messages: batches of
         :data:`SMALL_BATCH` bytes (larger messages are fragmented) and no shared-memory
-        pool (Zenoh's 16 MB pool for messages over 3 kB).
+        pool (Zenoh's 16 MB pool for messages over 3 kB). QoS stays on: a link keeps one
+        transmission queue per priority, so that the droppable messages (their own
+        priority, :meth:`transport.zenoh_bus.ZenohBus.publish`) never wait behind a
+        blocking one (with one queue per link, a realtime team on a loaded machine saw the
+        plant's measurements to some agents dropped for good after the first rounds).
     scout_delay_ms : int, optional
         How long opening a peer session may wait for its ``connect`` endpoints (Zenoh's
         ``scouting/delay``; its default when None: 500 ms whenever one of them is not up
@@ -335,7 +338,6 @@ def make_config(
         if scout_delay_ms is not None:
             conf.insert_json5("scouting/delay", json.dumps(int(scout_delay_ms)))
         if small_links:
-            conf.insert_json5("transport/unicast/qos/enabled", "false")
             conf.insert_json5("transport/link/tx/batch_size", json.dumps(SMALL_BATCH))
             conf.insert_json5("transport/link/rx/buffer_size", json.dumps(SMALL_BATCH))
             conf.insert_json5("transport/shared_memory/enabled", "false")
