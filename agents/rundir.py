@@ -6,6 +6,7 @@ import json
 import math
 import platform
 import sys
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
@@ -66,14 +67,14 @@ def write_json(path: Path, data: Any) -> None:
     tmp.replace(path)
 
 
-def write_manifest(run_dir: Path, exp: Experiment, frozen: dict, *, driver: str, run_id: str, extra: dict | None = None) -> None:
+def write_manifest(run_dir: Path, exp: Experiment, frozen: Mapping[str, Any], *, driver: str, run_id: str, extra: dict | None = None) -> None:
     write_json(run_dir / "manifest.json", {
         "run_id": run_id,
         "driver": driver,
         "created": datetime.now(UTC).isoformat(),
         "source": exp.source,
         "seed": exp.seed,
-        "scenario": frozen,
+        "scenario": dict(frozen),
         "versions": versions(),
         **(extra or {}),
     })

@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import uuid
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -80,14 +80,12 @@ def load(scenario: str | Path | Mapping[str, Any], *, set: Mapping[str, Any] | I
         sc, frozen = load_scenario(scenario, ov)
         raw = read_toml(scenario) if ov else None
     exp = build(sc, source=source, check_conditions=check_conditions)
-    exp.frozen = frozen
-    exp.overrides = tuple(ov)
-    exp.nominal_horizon = nominal_horizon(raw) if ov and raw is not None else sc.run.n_rounds * sc.run.dt
-    return exp
+    horizon = nominal_horizon(raw) if ov and raw is not None else sc.run.n_rounds * sc.run.dt
+    return replace(exp, frozen=frozen, overrides=tuple(ov), nominal_horizon=horizon)
 
 
 def load_experiment(scenario: str | Path, overrides: Iterable[str] = (), seed: int | None = None, *,
-                    check_conditions: bool = True) -> tuple[Experiment, dict]:
+                    check_conditions: bool = True) -> tuple[Experiment, Mapping[str, Any]]:
     """:func:`load` with ``KEY=VALUE`` overrides, returning ``(experiment, frozen scenario)``."""
     exp = load(scenario, set=list(overrides), seed=seed, check_conditions=check_conditions)
     return exp, exp.frozen

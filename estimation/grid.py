@@ -30,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import DesignError
 
@@ -169,11 +170,11 @@ def swing_model(B: np.ndarray, gen_bus: np.ndarray, *, M: np.ndarray, D: np.ndar
                       input_bus=np.asarray(input_bus, dtype=int))
 
 
-def inertia(H: np.ndarray, S: np.ndarray, *, base_mva: float, f_hz: float) -> np.ndarray:
+def inertia(H: ArrayLike, S: ArrayLike, *, base_mva: float, f_hz: float) -> np.ndarray:
     """``M = 2 H S / (omega_s S_base)`` (p.u. power s^2 / rad), ``H`` in s on rating ``S`` (MVA)."""
     return 2.0 * np.asarray(H, dtype=float) * np.asarray(S, dtype=float) / (2 * np.pi * f_hz * base_mva)
 
 
-def damping(d: np.ndarray, S: np.ndarray, *, base_mva: float, f_hz: float) -> np.ndarray:
+def damping(d: ArrayLike, S: ArrayLike, *, base_mva: float, f_hz: float) -> np.ndarray:
     """``D = d S / (omega_s S_base)`` (p.u. power per rad/s), ``d`` in p.u. power per p.u. frequency."""
     return np.asarray(d, dtype=float) * np.asarray(S, dtype=float) / (2 * np.pi * f_hz * base_mva)

@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import DesignError
 
@@ -192,7 +193,7 @@ def where(patrol: Patrol, k: int, *, positions: np.ndarray) -> tuple[int | None,
 
 
 def cell_patrols(
-    loc_cell: Sequence[int],
+    loc_cell: ArrayLike,
     *,
     agents_per_cell: int = 4,
     periods: Sequence[int] = PAPER_PERIODS,

@@ -11,7 +11,8 @@ are public in :mod:`scenarios.helpers`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -39,9 +40,10 @@ from .helpers import check_size, explicit_AB, init_vector, matrix
 from .schema import Scenario
 
 
-@dataclass
+@dataclass(frozen=True)
 class Experiment:
-    """Everything a run of a scenario needs, built once.
+    """Everything a run of a scenario needs, built once (and never changed: a variant is
+    ``dataclasses.replace(exp, ...)``).
 
     Ids: ``agent_ids[i]`` is the 1-based id of agent index ``i``; ``Adj`` is indexed by
     agent index (``Adj[i, j] = 1``: ``i`` receives from ``j``).
@@ -63,9 +65,9 @@ class Experiment:
     sensor_attacks: list[SensorAttackSignal]
     design: Any = None  # the algorithm plugin's offline design
     stepper: Any = None  # a nonlinear / noisy plant's own step (see scenarios.common.PlantStepper)
-    byzantine: set[int] = field(default_factory=set)  # agent indices
+    byzantine: frozenset[int] = frozenset()  # agent indices
     #: agent index -> its Byzantine strategy, as specified (the runtime builds the middleware)
-    byzantine_specs: dict[int, ByzantineSpec] = field(default_factory=dict)
+    byzantine_specs: Mapping[int, ByzantineSpec] = field(default_factory=dict)
     discrete: bool = False
     positions: np.ndarray | None = None  # (banks, 2) map positions of the sensing locations
     patrols: list[Patrol | None] = field(default_factory=list)  # per agent (None: static)
@@ -73,7 +75,7 @@ class Experiment:
     cell_of_location: np.ndarray | None = None
     #: the validated scenario as plain data (what ``manifest.json`` freezes) and the
     #: overrides it was loaded with (``KEY=VALUE`` strings, ``run.seed`` included)
-    frozen: dict = field(default_factory=dict)
+    frozen: Mapping[str, Any] = field(default_factory=dict)
     overrides: tuple[str, ...] = ()
     #: the horizon in seconds of the scenario file itself, before overrides (None: unknown);
     #: a shorter run lists the bounds meant for the file's horizon as not evaluated
@@ -183,10 +185,8 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     sizes = [C.shape[0] for C in plant.banks]
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     bank_rows = [np.arange(offsets[b], offsets[b + 1]) for b in range(len(sizes))]
-    bank_names = [
-        (sc.sensors[b].name if sc.sensors is not None and sc.sensors[b].name else f"sensor{b + 1}")
-        for b in range(len(sizes))
-    ]
+    given: list[str | None] = [s.name for s in sc.sensors] if sc.sensors is not None else [None] * len(sizes)
+    bank_names = [name or f"sensor{b + 1}" for b, name in enumerate(given)]
     nb = len(sizes)
     # agents: static (banks) or mobile (patrols)
     patrols: list[Patrol | None] = []
@@ -221,13 +221,12 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
                         raise ScenarioError(f"agents[{k}].sensors: no sensor bank {s_}; banks are 1..{nb}", source=source)
                 agent_banks.append([s_ - 1 for s_ in a.sensors])
                 patrols.append(None)
-            else:
-                pt = a.patrol
-                bad = [l for l in pt.locations if not 1 <= l <= nb]
+            elif (spec := a.patrol) is not None:  # the schema gives one of sensors / patrol
+                bad = [l for l in spec.locations if not 1 <= l <= nb]
                 if bad:
                     raise ScenarioError(f"agents[{k}].patrol.locations: no location(s) {bad}; locations are 1..{nb}", source=source)
                 try:
-                    patrols.append(Patrol(tuple(l - 1 for l in pt.locations), tuple(pt.offsets), tuple(pt.periods), agent=agent_ids[-1]))
+                    patrols.append(Patrol(tuple(l - 1 for l in spec.locations), tuple(spec.offsets), tuple(spec.periods), agent=agent_ids[-1]))
                 except DesignError as exc:
                     raise ScenarioError(f"agents[{k}].patrol: {exc}", source=source) from None
                 agent_banks.append([])
@@ -239,10 +238,10 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
         raise ScenarioError("agents: the team has no agents (no [[agents]] and no sensor banks)", source=source)
     index_of = {aid: i for i, aid in enumerate(agent_ids)}
     agent_rows = [np.concatenate([bank_rows[b] for b in banks]).astype(int) if banks else np.zeros(0, dtype=int) for banks in agent_banks]
-    for k, pt in enumerate(patrols):  # a schedule tabulates its first offset + hyper-period rounds
-        if pt is not None:
+    for k, patrol in enumerate(patrols):  # a schedule tabulates its first offset + hyper-period rounds
+        if patrol is not None:
             keys = "agents.periods" if per_cell is not None else f"agents[{k}].patrol.periods, offsets"
-            check_size("rounds", max(pt.offsets) + pt.hyper_period, f"{keys} (largest offset + hyper-period)",
+            check_size("rounds", max(patrol.offsets) + patrol.hyper_period, f"{keys} (largest offset + hyper-period)",
                        run=sc.run, source=source)
     schedules = [PatrolSchedule(pt, model.positions) if pt is not None else None for pt in patrols]
     check_size("agents", N, "agents", run=sc.run, source=source)
@@ -287,12 +286,12 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     specs: dict[int, ByzantineSpec] = {}
     for k, at in enumerate(sc.attacks):
         if at.target == "agent":
-            for a in at.agents:
-                if a not in index_of:
-                    raise ScenarioError(f"attacks[{k}].agents: no agent {a}; agents are {agent_ids[0]}..{agent_ids[-1]}", source=source)
-                i = index_of[a]
+            for aid in at.agents:
+                if aid not in index_of:
+                    raise ScenarioError(f"attacks[{k}].agents: no agent {aid}; agents are {agent_ids[0]}..{agent_ids[-1]}", source=source)
+                i = index_of[aid]
                 if i in specs:
-                    raise ScenarioError(f"attacks[{k}].agents: agent {a} already has a Byzantine strategy", source=source)
+                    raise ScenarioError(f"attacks[{k}].agents: agent {aid} already has a Byzantine strategy", source=source)
                 bad = [r for r in (at.towards or []) if r not in index_of]
                 if bad:
                     raise ScenarioError(f"attacks[{k}].towards: no agent(s) {bad}", source=source)
@@ -301,7 +300,7 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
                     kind=at.kind, start=int(np.ceil(at.start / dt - 1e-9)),
                     stop=None if np.isinf(at.stop) else int(np.ceil(at.stop / dt - 1e-9)),
                     targets=frozenset(at.towards) if at.towards else None, value=at.value, scale=at.scale,
-                    shift=at.shift, lag=at.lag, payload=at.payload, seed=sc.run.seed, agent=a,
+                    shift=at.shift, lag=at.lag, payload=at.payload, seed=sc.run.seed, agent=aid,
                 )
                 byzantine.add(i)
             continue
@@ -323,9 +322,9 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
     exp = Experiment(
         scenario=sc, source=source, plant=plant, Ad=Ad, Bd=Bd, x0=x0, input=signal, bank_rows=bank_rows,
         bank_names=bank_names, agent_ids=agent_ids, agent_rows=agent_rows, Adj=Adj, blocks=blocks,
-        sensor_attacks=attacks, byzantine=byzantine, byzantine_specs=specs, discrete=model.discrete,
+        sensor_attacks=attacks, byzantine=frozenset(byzantine), byzantine_specs=specs, discrete=model.discrete,
         positions=model.positions, patrols=patrols, schedules=schedules, cell_of_location=model.cell_of_location,
-        cost=cost,
+        cost=cost, stepper=model.stepper,
     )
     _check_expectations(exp, source)
     if check_conditions:
@@ -333,8 +332,7 @@ def build(sc: Scenario, *, source: str = "<scenario>", check_conditions: bool = 
         if len(comps) > 1:
             names = " and ".join("{" + ", ".join(str(agent_ids[i]) for i in c) + "}" for c in comps)
             raise ScenarioError(f"network.graph: the graph is disconnected: agents {names}", source=source)
-    exp.stepper = model.stepper
-    exp.design = exp.plugin.design(exp, check=check_conditions)
+    exp = replace(exp, design=exp.plugin.design(exp, check=check_conditions))
     if check_conditions and model.stepper is None:
         _check_float_horizon(exp, source)
     return exp

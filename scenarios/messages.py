@@ -16,6 +16,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from pydantic import BaseModel, ValidationError
+from pydantic_core import ErrorDetails
 
 from estimation.errors import ScenarioError
 
@@ -115,7 +116,7 @@ def _nested_discriminator(annotation: Any) -> str | None:
     return None
 
 
-def _message(e: dict, found: Any) -> str:
+def _message(e: ErrorDetails, found: Any) -> str:
     ctx = e.get("ctx") or {}
     typ = e["type"]
     if typ == "union_tag_invalid":

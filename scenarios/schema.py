@@ -10,13 +10,13 @@ Ids in scenario files are 1-based (sensor banks / locations, agents), as in the 
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal, Union
+from typing import TYPE_CHECKING, Annotated, Literal, Union
 
 from pydantic import Field, model_validator
 
 from . import budget
 from .plugins import estimator_sections, plant_model_names
-from .types import Init, Matrix, Strict, UniformInit, ValueInit, Vector, ZeroInit  # noqa: F401  (the schema's types, importable from here)
+from .types import EstimatorTable, Init, Matrix, Strict, UniformInit, ValueInit, Vector, ZeroInit  # noqa: F401  (the schema's types, importable from here)
 
 
 # --------------------------------------------------------------------------- [run]
@@ -43,7 +43,7 @@ class RunSection(Strict):
         """Number of steps; rounds 0..n_rounds are simulated."""
         if self.rounds is not None:
             return self.rounds
-        return int(round(self.duration / self.dt))
+        return int(round(budget.horizon_rounds(self.dt, self.duration, None)))
 
 
 # --------------------------------------------------------------------------- [plant]
@@ -55,7 +55,10 @@ class InputSignal(Strict):
     offset: float = 0.0
 
 
-PlantModelName = Literal[("three_inertia", "lti", *plant_model_names())]  # type: ignore[valid-type]
+if TYPE_CHECKING:  # the names are known at run time only (plugins add theirs); statically, a str
+    PlantModelName = str
+else:
+    PlantModelName = Literal[("three_inertia", "lti", *plant_model_names())]
 
 
 class PlantSection(Strict):
@@ -183,7 +186,10 @@ class NetworkSection(Strict):
 
 
 # --------------------------------------------------------------------------- [estimator]
-Estimator = Annotated[Union[estimator_sections()], Field(discriminator="algorithm")]  # type: ignore[valid-type]  # noqa: UP007  (a union built at run time from the registered algorithms)
+if TYPE_CHECKING:  # a union built at run time from the registered algorithms; statically, what they share
+    Estimator = EstimatorTable
+else:
+    Estimator = Annotated[Union[estimator_sections()], Field(discriminator="algorithm")]  # noqa: UP007
 
 
 # --------------------------------------------------------------------------- [[attacks]]

@@ -3,7 +3,7 @@ algorithm plugins in :mod:`scenarios.plugins`)."""
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Literal, Protocol
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -13,6 +13,15 @@ class Strict(BaseModel):
     infinite number (a plugin's ``[estimator]`` section inherits both)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class EstimatorTable(Protocol):
+    """What every plugin's ``[estimator]`` table has (its ``ESTIMATOR`` model): the
+    algorithm's name, a one-value ``Literal``. The scenario's ``estimator`` is the union of
+    the registered plugins' models, known at run time only; this is its static type."""
+
+    @property
+    def algorithm(self) -> str: ...
 
 
 Matrix = list[list[float]]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import uuid
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -74,7 +75,7 @@ def write_table(out: Path, rows: list[dict[str, Any]]) -> Path:
     return path
 
 
-def write_scenario(path: Path, frozen: dict[str, Any], *, header: str, spec: MetricSpec, threshold: float | None) -> Path:
+def write_scenario(path: Path, frozen: Mapping[str, Any], *, header: str, spec: MetricSpec, threshold: float | None) -> Path:
     """The scenario as data plus an ``[[expect]]`` that prints the red-team metric, as TOML."""
     import tomli_w
 

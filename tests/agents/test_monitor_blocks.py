@@ -1,6 +1,8 @@
 """Monitor blocks over transformed coordinates: a 2-D block ``M`` gives the metrics of
 ``M (x_hat - x)`` (agents.monitor)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -13,9 +15,7 @@ from tests.conftest import SCENARIOS
 def _exp(blocks):
     """A real experiment (the Lee-Kim-Shim plant, n = 6, five agents) with these blocks."""
     sc, _ = load(SCENARIOS / "lee_kim_shim.toml", ["run.duration=0.004", "run.dt=0.001", "expect=[]", "output.window=[0.0, 0.004]"])
-    exp = build(sc, source="lee_kim_shim.toml")
-    exp.blocks = dict(blocks)
-    return exp
+    return replace(build(sc, source="lee_kim_shim.toml"), blocks=dict(blocks))
 
 
 def test_matrix_block_metrics_are_those_of_the_mapped_error():

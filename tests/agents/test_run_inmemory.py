@@ -2,6 +2,7 @@
 processes. Lockstep equals the simulator; addressed payloads; bad bytes are counted."""
 
 import asyncio
+from dataclasses import replace
 
 import msgpack
 import numpy as np
@@ -21,11 +22,11 @@ LKS = ("run.dt=0.01", "run.duration=12", "output.window=[8.0, 12.0]")
 def _both(path, overrides, tweak=None):
     exp, _ = load_experiment(path, overrides, None)
     if tweak:
-        tweak(exp)
+        exp = tweak(exp)
     ref = simulate(exp, keep_trajectories=True)
     exp, _ = load_experiment(path, overrides, None)
     if tweak:
-        tweak(exp)
+        exp = tweak(exp)
     res = asyncio.run(asyncio.wait_for(run_team_in_memory(exp, RunConfig(save_estimates=True, deadline=30.0)), 600))
     return ref, res
 
@@ -71,8 +72,8 @@ def test_omniscient_cancellation_adversary_in_memory_equals_the_simulator():
 
 def test_addressed_payloads_of_a_byzantine_agent():
     def tweak(exp):
-        exp.byzantine_specs[1] = ByzantineSpec(kind="equivocation", start=200, scale=0.3)
-        exp.byzantine.add(1)
+        return replace(exp, byzantine_specs={**exp.byzantine_specs, 1: ByzantineSpec(kind="equivocation", start=200, scale=0.3)},
+                       byzantine=exp.byzantine | {1})
 
     ref, res = _both(SCENARIOS / "lee_kim_shim.toml", LKS, tweak)
     assert _rel(res.estimates, ref.estimates, ref.truth) <= 1e-12
@@ -141,8 +142,8 @@ def test_omniscient_adversary_among_agents_whose_done_report_carries_the_estimat
     it, no separate estimate message) with agent 2 cancelling with the omniscient view: the
     view reads its receivers' other inputs from those done reports; equal to the simulator."""
     def tweak(exp):
-        exp.byzantine_specs[1] = ByzantineSpec(kind="cancellation", start=100, seed=3, agent=2)
-        exp.byzantine.add(1)
+        return replace(exp, byzantine_specs={**exp.byzantine_specs, 1: ByzantineSpec(kind="cancellation", start=100, seed=3, agent=2)},
+                       byzantine=exp.byzantine | {1})
 
     ref, res = _both(SCENARIOS / "lee_kim_shim.toml", LKS, tweak)
     assert _rel(res.estimates, ref.estimates, ref.truth) <= 1e-12
