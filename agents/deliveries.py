@@ -114,7 +114,8 @@ class Incarnation:
 
 
 def _blocks(data: bytes) -> tuple[list[dict[str, Any]], bool]:
-    out, pos = [], 0
+    out: list[dict[str, Any]] = []
+    pos = 0
     while pos + 4 <= len(data):
         (n,) = _LEN.unpack_from(data, pos)
         if n > MAX_BLOCK or pos + 4 + n > len(data):

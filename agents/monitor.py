@@ -25,7 +25,7 @@ nothing.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -36,6 +36,10 @@ if TYPE_CHECKING:  # an agent process reads diagnostics without the scenario lay
     from scenarios.build import Experiment
 
 METRICS = ("error_2", "error_inf", "relative_error_2")
+
+
+#: ``on_chunk(rows (c,), x (c, n), estimates (c, N, n))``: a flushed chunk of rounds
+ChunkHook = Callable[[np.ndarray, np.ndarray, np.ndarray], None]
 
 
 def plot_rows(exp: Experiment) -> list[tuple[str, np.ndarray, list[int]]]:
@@ -103,7 +107,7 @@ class Monitor:
         #: called as ``on_chunk(rows, x (c, n), estimates (c, N, n))`` after each flush;
         #: while it is set, rounds are flushed at least every ``flush_interval`` seconds
         #: (a recorder streaming them to disk loses at most that much, :mod:`agents.recorder`)
-        self.on_chunk = None
+        self.on_chunk: ChunkHook | None = None
         self.flush_interval = 1.0
         self._flushed_at = -float("inf")  # the first round is handed on at once
         # [[output.plots]]: linear combinations of the state, truth and chosen agents

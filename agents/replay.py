@@ -113,8 +113,8 @@ def replay(exp: Experiment, record: dict[int, list[Incarnation]], *, completed: 
     index = {aid: i for i, aid in enumerate(exp.agent_ids)}
     plant, mon = PlantRole(exp), Monitor(exp)
     if dashboard is not None:
-        feed = DashboardFeed(dashboard, N, lambda: np.zeros((N, 4)))
-        mon.on_chunk = lambda rows, xs, ests_: feed.log(rows, mon, xs, ests_)
+        live = DashboardFeed(dashboard, N, lambda: np.zeros((N, 4)))
+        mon.on_chunk = lambda rows, xs, ests_: live.log(rows, mon, xs, ests_)
     traj = np.full((last + 1, N, n), np.nan)
     truth = np.full((last + 1, n), np.nan)
     est_k = np.empty((N, n))
@@ -133,11 +133,11 @@ def replay(exp: Experiment, record: dict[int, list[Incarnation]], *, completed: 
             for j, s in zip(inc.in_ids, inc.stamps[row]):
                 if s < 0:
                     continue
-                v = sent.get((j, aid, int(s))) if index[j] in byz else payload.get((j, int(s)))
-                if v is None:
+                got = sent.get((j, aid, int(s))) if index[j] in byz else payload.get((j, int(s)))
+                if got is None:
                     reason = f"agent {aid}'s round {k} holds agent {j}'s message stamped {int(s)}, which the record lacks"
                     break
-                inbox[index[j]] = Received(index[j], int(s), v)
+                inbox[index[j]] = Received(index[j], int(s), got)
             if reason is not None:
                 break
             est = ests[i]

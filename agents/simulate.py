@@ -143,10 +143,10 @@ def simulate(
             views.append(view)
     reads = Reads(exp)
     measurement = reads.measurement
-    feed = None
+    feed: DashboardFeed | None = None
     if dashboard is not None:
-        feed = DashboardFeed(dashboard, N, lambda: receiver_counters(nodes))
-        mon.on_chunk = lambda rows, xs, ests: feed.log(rows, mon, xs, ests)
+        feed = live = DashboardFeed(dashboard, N, lambda: receiver_counters(nodes))
+        mon.on_chunk = lambda rows, xs, ests: live.log(rows, mon, xs, ests)
     groups = batch_groups(exp, nodes) if batched else []
     in_batch = {i for g in groups for i in g.agents}
     singles = [i for i in order if i not in in_batch]
@@ -174,12 +174,12 @@ def simulate(
                 est_k = est_out
                 for g in groups:  # every batch in one call, then the agents stepped alone
                     outs = g.step(k, [measurement(i, k, y) for i in g.agents], [nodes[i].open_round(k) for i in g.agents])
-                    got = g.estimates()
-                    if isinstance(got, list):
-                        for i, e in zip(g.agents, got):
+                    batch = g.estimates()
+                    if isinstance(batch, list):
+                        for i, e in zip(g.agents, batch):
                             est_out[i] = e
                     else:
-                        est_out[g.agents] = got
+                        est_out[g.agents] = batch
                     for i, out in zip(g.agents, outs):
                         send(nodes[i], k, out, targets[i])
                 for i in singles:
@@ -203,7 +203,7 @@ def simulate(
                         mon.record_diagnostic_rows(k, idx, *got)
                 for i, est in diag:
                     mon.record_diagnostics(k, i, *read_diagnostics(est))
-            if keep_trajectories:
+            if traj is not None and truth is not None:  # keep_trajectories
                 traj[k] = est_k
                 truth[k] = x
             if progress is not None and (k & 255 == 0 or k == K):

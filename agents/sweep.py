@@ -242,7 +242,7 @@ def run_sweep(scenario: Path, grid_specs: list[str], *, seeds: int, jobs: int, o
                 write_table(out, rows, [k for k, _ in grid])
         raise
     order = {p.id: i for i, p in enumerate(pts)}
-    rows.sort(key=lambda r: order.get(r.get("point"), len(order)))  # grid order, whatever the completion order
+    rows.sort(key=lambda r: order.get(r.get("point", ""), len(order)))  # grid order, whatever the completion order
     write_table(out, rows, [k for k, _ in grid])
     return rows
 
@@ -265,18 +265,20 @@ def mss_curve(scenario: Path, overrides: list[str], p: np.ndarray) -> tuple[np.n
     from estimation.robustness import strong_robustness
     from scenarios.build import build
     from scenarios.loader import load
+    from scenarios.plugins.mitra import MitraEstimator
 
     sc, _ = load(scenario, overrides)
-    if sc.estimator.algorithm != "lfre" or sc.estimator.f < 1:
+    est = sc.estimator
+    if not isinstance(est, MitraEstimator) or est.f < 1:  # the lfre algorithm
         return None
     exp = build(sc, source=str(scenario))
     des = exp.design
     r = min(strong_robustness(des.Adj, des.sources[j]) for j in des.medags)
-    m = robustness_multiplier(r, f=sc.estimator.f)
+    m = robustness_multiplier(r, f=est.f)
     rho = float(np.max(np.abs(des.modal.lam)))
     if not math.isfinite(m) or m < 1:
         return None
-    return np.array([mss_margin(x, rho=rho, m=int(m), f=sc.estimator.f) for x in p]), max_erasure_probability(rho=rho, m=int(m), f=sc.estimator.f)
+    return np.array([mss_margin(x, rho=rho, m=int(m), f=est.f) for x in p]), max_erasure_probability(rho=rho, m=int(m), f=est.f)
 
 
 #: the per-run figures a sweep figure can draw (the worst regular agent's, columns ``worst_NAME``)

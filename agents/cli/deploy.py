@@ -71,13 +71,13 @@ def certs(directory: Path, scenario: Path | None, agents: int | None, hosts: tup
     """
     if (scenario is None) == (agents is None):
         raise ScenarioError("give exactly one of --scenario SCENARIO or --agents N")
-    if scenario is not None:
+    if agents is not None:
+        ids = list(range(1, agents + 1))
+    elif scenario is not None:
         from .common import load_experiment
 
         exp, _ = load_experiment(scenario, (), None, check_conditions=False)
         ids = list(exp.agent_ids)
-    else:
-        ids = list(range(1, agents + 1))
     from transport.certs import write_certs
 
     identities = ["router", "plant", "monitor", *(f"agent-{i}" for i in ids)]

@@ -193,9 +193,10 @@ def launch(exp: Any, run_dir: Path, cfg: RunConfig, *, run_id: str | None = None
         say(f"run {plan.run_id}: {exp.N} agents, {cfg.mode}"
             + (f" at {cfg.rate:g} Hz" if cfg.rate else "") + f"; team file {run_dir / 'team.json'}")
 
-    router_args = (plan.router, plan.tls.get("router"), {"agent_ids": tuple(exp.agent_ids), "run_id": plan.run_id})
+    router_args = None if plan.router is None else (
+        plan.router, plan.tls.get("router"), {"agent_ids": tuple(exp.agent_ids), "run_id": plan.run_id})
     with round_progress(exp.n_rounds + 1, exp.scenario.run.name, enabled=hooks.progress) as update:
-        out = sup.run(specs, router=router_args if plan.router else None, on_started=started, update=update)
+        out = sup.run(specs, router=router_args, on_started=started, update=update)
     if not out.pids:  # interrupted while the router started: nothing ran
         return LaunchResult(EXIT_INTERRUPTED, run_dir, plan.run_id, None, out.failures, out.leaves)
     return _finish(run_dir, exp, plan.run_id, out)

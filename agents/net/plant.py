@@ -84,15 +84,16 @@ class PlantProcess(Role):
             if got is None:
                 return
             p, m = got
-            allowed = self.out_ids.get(p.sender)
-            got_to = None if allowed is None else report_to(m, self._out_lists[p.sender], len(allowed))
+            sender = p.sender
+            allowed = None if sender is None else self.out_ids.get(sender)
+            got_to = None if sender is None or allowed is None else report_to(m, self._out_lists[sender], len(allowed))
             # a broadcast report's receivers are the out-neighbours themselves (report_to)
-            if got_to is None or (m.kind != "est" and not allowed.issuperset(got_to[0])):
-                self.rejects.add(p.sender, "range")
+            if sender is None or allowed is None or got_to is None or (m.kind != "est" and not allowed.issuperset(got_to[0])):
+                self.rejects.add(sender, "range")
                 return
             rnd = self.done.get(m.stamp)
             if rnd is not None:
-                rnd[p.sender] = list(zip(*got_to))
+                rnd[sender] = list(zip(*got_to))
         elif "/ctl/ready/" in key:
             got = self.decode(key, payload, self.wire.ctl)
             if got is not None and got[0].sender in self.ids:

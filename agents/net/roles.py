@@ -9,6 +9,7 @@ A process that runs one role imports that role's module, not this one.
 from __future__ import annotations
 
 import asyncio
+import functools
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -27,6 +28,7 @@ from .wire import Rejects, Wire, _msg, diagnostics_from_meta, diagnostics_meta, 
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
+    from transport.zenoh_bus import InMemoryBus
 
 __all__ = ["MODES", "AgentProcess", "AgentSlice", "ViewTopology", "agent_slices", "read_slice", "run_agent_slice",
            "view_topology", "write_slices", "MonitorProcess", "MonitorResult", "NetworkView", "PlantProcess", "Rejects", "Role",
@@ -48,10 +50,15 @@ async def run_team_in_memory(exp: Experiment, cfg: RunConfig, *, run_id: str = "
         agents = [asyncio.ensure_future(run_agent_slice(part, buses[2 + i], keys, cfg, node_hook=node_hook))
                   for i, part in enumerate(agent_slices(exp))]
         for task, bus in zip(agents, buses[2:]):  # an agent that ends leaves, as its process would
-            task.add_done_callback(lambda _, bus=bus: bus.close())
+            task.add_done_callback(functools.partial(_leave, bus))
         plant = asyncio.ensure_future(run_plant(exp, buses[1], keys, cfg))
         await asyncio.gather(plant, *agents)
         return await mon
     finally:
         for b in buses:
             b.close()
+
+
+def _leave(bus: InMemoryBus, _task: asyncio.Future[Any]) -> None:
+    """An agent task that ended leaves the hub, as its process would."""
+    bus.close()

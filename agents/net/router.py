@@ -26,6 +26,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from estimation.errors import ScenarioError
@@ -182,7 +183,7 @@ def serve(config: Any, endpoints: Sequence[str] = (), *, say: Callable[[str], No
     from estimation.errors import TransportError
     from transport.zenoh_session import close_session, open_session
 
-    handlers: dict[int, Any] = {}
+    handlers: dict[signal.Signals, Callable[[int, FrameType | None], Any] | int | None] = {}
     # a signal handler only notes the signal: Event.set() there could wait forever for the
     # lock the interrupted main thread holds inside Event.wait() (seen: 1 SIGTERM in 30 to
     # 80 on a loaded machine left `rse router` hanging)

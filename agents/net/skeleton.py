@@ -326,10 +326,10 @@ def run_skeleton(sizes: Sizes, rounds: int = 2000, *, timeout: float = 120.0, mi
         names.remove("monitor")
     ports: list[int] = []
     while len(ports) < len(names):
-        p = free_tcp_port()
-        if p not in ports:
-            ports.append(p)
-    eps = [tcp_endpoint(p) for p in ports]
+        port = free_tcp_port()
+        if port not in ports:
+            ports.append(port)
+    eps = [tcp_endpoint(port) for port in ports]
     ctx = multiprocessing.get_context("spawn")
     recv, send = ctx.Pipe(duplex=False)
     run = f"skeleton-{uuid.uuid4().hex[:8]}"

@@ -180,7 +180,7 @@ def find_slices(team_dir: Path, agent_ids: Sequence[int]) -> bytes | None:
     return dumps_slices([got[a] for a in agent_ids])
 
 
-def read_slices(src: Path | bytes) -> list[AgentSlice]:
+def read_slices(src: str | Path | bytes) -> list[AgentSlice]:
     """The slices of a file written by :func:`write_slices` (a path or its bytes)."""
     where = "an agent slice" if isinstance(src, (bytes, bytearray)) else str(src)
     try:
@@ -195,11 +195,11 @@ def read_slices(src: Path | bytes) -> list[AgentSlice]:
     return parts
 
 
-def read_slice(src: Path | bytes) -> AgentSlice:
+def read_slice(src: str | Path | bytes) -> AgentSlice:
     """The one slice of a file written for one agent."""
     parts = read_slices(src)
     if len(parts) != 1:
-        raise ScenarioError(f"{src if isinstance(src, Path) else 'an agent slice'}: {len(parts)} agents, expected one")
+        raise ScenarioError(f"{'an agent slice' if isinstance(src, (bytes, bytearray)) else src}: {len(parts)} agents, expected one")
     return parts[0]
 
 

@@ -58,7 +58,7 @@ def stop_helpers() -> None:
 
     for helper in (forkserver._forkserver, resource_tracker._resource_tracker):
         with contextlib.suppress(Exception):
-            helper._stop()  # type: ignore[attr-defined]  # closes its pipe, then waits for it
+            helper._stop()  # type: ignore[union-attr]  # private (no public stop in 3.11); closes its pipe, then waits for it
 
 
 def context() -> Any:

@@ -102,8 +102,9 @@ class NetworkView(OmniscientView):
     def forget(self, k: int) -> None:
         """Drop what rounds before ``k`` left behind."""
         self.k = k
-        for store in (self.bcast, self.addr):
-            for key in [key for key in store if key[-1] < k]:
-                del store[key]
+        for b in [b for b in self.bcast if b[-1] < k]:
+            del self.bcast[b]
+        for a in [a for a in self.addr if a[-1] < k]:
+            del self.addr[a]
         for s in [s for s in self.done if s < k]:
             del self.done[s]
