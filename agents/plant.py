@@ -9,19 +9,19 @@ the discrete-time plant itself). A nonlinear or noisy plant brings its own stepp
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 if TYPE_CHECKING:  # the plant process is handed a slice of the experiment (agents.net.slices)
-    from scenarios.build import Experiment
+    from .rounds import PlantTeam
 
 
 class PlantRole:
-    def __init__(self, exp: Experiment | Any) -> None:
+    def __init__(self, exp: PlantTeam) -> None:
         self.exp = exp
         self.x = exp.x0.copy()
-        self._C = exp.C if hasattr(exp, "C") else exp.plant.C
+        self._C = exp.C
         self._Ad, self._Bd = exp.Ad, exp.Bd
         self._input = exp.input
         self._attacks = exp.sensor_attacks

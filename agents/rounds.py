@@ -17,7 +17,9 @@ construction:
   the per-link counters (a receiver's node counts them; the summary and the dashboard
   read them in one format);
 * :class:`DashboardFeed`: the links delivered per map frame and the counters handed to the
-  dashboard with every chunk of recorded rounds.
+  dashboard with every chunk of recorded rounds;
+* :class:`Team`, :class:`PlantTeam`: what a role reads of the team it is handed (the
+  built experiment, or a picklable slice of it: :mod:`agents.net.slices`).
 
 The omniscient adversary's view is :mod:`agents.omniscient`. Nothing here imports the
 scenario schema, pyarrow, Rerun or the design stack: an agent process imports this module.
@@ -26,17 +28,73 @@ scenario schema, pyarrow, Rerun or the design stack: an agent process imports th
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from transport.byzantine import Forged
 from transport.channel import LinkCounters
 
+if TYPE_CHECKING:
+    from estimation.attacks import SensorAttackSignal
+    from estimation.signals import Signal
+    from scenarios.build import Experiment
+    from scenarios.common import PlantStepper
+
 #: the per-link counters, in the order of a link row after the sender's id (:func:`link_rows`)
 LINK_FIELDS = ("sent", "delivered", "dropped", "late", "rejected")
 #: a receiver's counters on the dashboard (summed over its in-links)
 DASHBOARD_FIELDS = ("delivered", "dropped", "late", "rejected")
+
+
+# ------------------------------------------------------------------ what a role is handed
+
+
+class Team(Protocol):
+    """What every role reads of its team (:class:`~scenarios.build.Experiment`, an agent's
+    :class:`~agents.net.slices.AgentSlice`, the plant's :class:`~agents.net.slices.PlantSlice`):
+    the agents' ids in index order, the state dimension ``n``, the team size ``N`` and the
+    rows ``ny`` of the stacked measurement (the bounds of the messages' shapes)."""
+
+    @property
+    def agent_ids(self) -> Sequence[int]: ...
+    @property
+    def n(self) -> int: ...
+    @property
+    def N(self) -> int: ...
+    @property
+    def ny(self) -> int: ...
+
+
+class PlantTeam(Team, Protocol):
+    """What the plant reads (the experiment or its :class:`~agents.net.slices.PlantSlice`):
+    the model, input and sensor attacks, the horizon, who reads which rows when, and the
+    out-neighbours (agent indices) whose lockstep rounds wait for each agent."""
+
+    @property
+    def dt(self) -> float: ...
+    @property
+    def n_rounds(self) -> int: ...
+    @property
+    def x0(self) -> np.ndarray: ...
+    @property
+    def C(self) -> np.ndarray: ...
+    @property
+    def Ad(self) -> np.ndarray: ...
+    @property
+    def Bd(self) -> np.ndarray: ...
+    @property
+    def input(self) -> Signal: ...
+    @property
+    def sensor_attacks(self) -> Sequence[SensorAttackSignal]: ...
+    @property
+    def stepper(self) -> PlantStepper | None: ...
+    @property
+    def static(self) -> bool: ...
+    @property
+    def agent_rows(self) -> Sequence[np.ndarray]: ...
+    def out_neighbours(self, i: int) -> list[int]: ...
+    def rows_at(self, i: int, k: int) -> np.ndarray | None: ...
 
 
 # ------------------------------------------------------------------ who acts when
@@ -54,9 +112,9 @@ def round_rank(agent_ids: Sequence[int], byzantine: Iterable[int]) -> dict[int, 
     return {agent_ids[i]: r for r, i in enumerate(round_order(len(agent_ids), byzantine))}
 
 
-def regular_mask(team: Any) -> np.ndarray:
-    """``(N,)`` bool: the agents that are not Byzantine (``team``: an experiment)."""
-    return np.array([i not in team.byzantine for i in range(team.N)])
+def regular_mask(exp: Experiment) -> np.ndarray:
+    """``(N,)`` bool: the agents that are not Byzantine."""
+    return np.array([i not in exp.byzantine for i in range(exp.N)])
 
 
 # ------------------------------------------------------------------ what an agent reads
@@ -67,7 +125,7 @@ class Reads:
     plant slice, :class:`agents.net.slices.PlantSlice`: ``static``, ``agent_rows`` and
     ``rows_at``)."""
 
-    def __init__(self, team: Any) -> None:
+    def __init__(self, team: PlantTeam) -> None:
         self.static = bool(team.static)
         self._rows = list(team.agent_rows)
         self._rows_at = team.rows_at

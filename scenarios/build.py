@@ -34,6 +34,7 @@ from .common import (  # noqa: F401  (re-exported for the drivers and tests)
     ByzantineSpec,
     Condition,
     PlantModel,
+    PlantStepper,
     rng_for,
 )
 from .helpers import check_size, explicit_AB, init_vector, matrix
@@ -64,7 +65,7 @@ class Experiment:
     blocks: dict[str, np.ndarray]
     sensor_attacks: list[SensorAttackSignal]
     design: Any = None  # the algorithm plugin's offline design
-    stepper: Any = None  # a nonlinear / noisy plant's own step (see scenarios.common.PlantStepper)
+    stepper: PlantStepper | None = None  # a nonlinear or noisy plant's own step
     byzantine: frozenset[int] = frozenset()  # agent indices
     #: agent index -> its Byzantine strategy, as specified (the runtime builds the middleware)
     byzantine_specs: Mapping[int, ByzantineSpec] = field(default_factory=dict)
@@ -91,6 +92,16 @@ class Experiment:
     @property
     def N(self) -> int:
         return len(self.agent_ids)
+
+    @property
+    def ny(self) -> int:
+        """Rows of the stacked measurement ``y``."""
+        return int(sum(len(r) for r in self.bank_rows))
+
+    @property
+    def C(self) -> np.ndarray:
+        """The stacked output matrix (every bank's rows)."""
+        return self.plant.C
 
     @property
     def dt(self) -> float:

@@ -24,7 +24,7 @@ from .protocol import Role
 from .wire import _msg, out_ids_of, report_to
 
 if TYPE_CHECKING:
-    from scenarios.build import Experiment
+    from agents.rounds import PlantTeam
 
 log = logging.getLogger("rse.net")
 
@@ -43,10 +43,10 @@ class _NextRound:
     pending: set[int]
 
 
-class PlantProcess(Role):
+class PlantProcess(Role["PlantTeam"]):
     name = "plant"
 
-    def __init__(self, exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig) -> None:
+    def __init__(self, exp: PlantTeam, bus: Bus, keys: Keys, cfg: RunConfig) -> None:
         super().__init__(exp, bus, keys, cfg)
         from agents.plant import PlantRole
 
@@ -275,6 +275,6 @@ class PlantProcess(Role):
         return {"elapsed": elapsed, "rounds": K + 1}
 
 
-async def run_plant(exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig) -> dict[str, Any]:
+async def run_plant(exp: PlantTeam, bus: Bus, keys: Keys, cfg: RunConfig) -> dict[str, Any]:
     """The plant process (see the module docstring); returns elapsed time and rounds."""
     return await PlantProcess(exp, bus, keys, cfg).run()

@@ -60,7 +60,7 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 import numpy as np
 
@@ -74,18 +74,23 @@ from .figures import process_figures
 from .wire import Rejects, Wire, _msg
 
 if TYPE_CHECKING:
-    from scenarios.build import Experiment
+    from agents.rounds import Team
 
 
 log = logging.getLogger("rse.net")
 
 
-class Role:
+#: what a role is handed of its team: the experiment (the monitor), the plant's slice or
+#: the experiment (the plant), an agent's slice (an agent); see agents.rounds.Team
+T = TypeVar("T", bound="Team")
+
+
+class Role(Generic[T]):
     """What the three roles share: one queue, strict decoding, liveliness bookkeeping."""
 
     name = "role"
 
-    def __init__(self, exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig) -> None:
+    def __init__(self, exp: T, bus: Bus, keys: Keys, cfg: RunConfig) -> None:
         self.exp, self.bus, self.keys, self.cfg = exp, bus, keys, cfg
         self.wire = Wire(exp)
         self.queue: asyncio.Queue = asyncio.Queue(maxsize=QUEUE_SIZE)

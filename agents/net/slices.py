@@ -30,7 +30,11 @@ from agents.omniscient import ViewTopology, reads_view, view_topology
 from estimation.errors import ScenarioError
 
 if TYPE_CHECKING:
+    from estimation.attacks import SensorAttackSignal
+    from estimation.patrols import PatrolSchedule
+    from estimation.signals import Signal
     from scenarios.build import Experiment
+    from scenarios.common import PlantStepper
 
 #: the "format" of a slice file (a pickled dict; another format is refused)
 FORMAT = "rse-agent-slice/1"
@@ -220,12 +224,12 @@ class PlantSlice:
     C: np.ndarray
     Ad: np.ndarray
     Bd: np.ndarray
-    input: Any
-    sensor_attacks: list[Any]
-    stepper: Any
+    input: Signal
+    sensor_attacks: list[SensorAttackSignal]
+    stepper: PlantStepper | None
     agent_rows: list[np.ndarray]
     bank_rows: list[np.ndarray]
-    schedules: list[Any]
+    schedules: list[PatrolSchedule | None]
     out_ids: list[list[int]]  # per agent index: its out-neighbours' indices
 
     @property
@@ -246,7 +250,7 @@ class PlantSlice:
 
 
 def plant_slice(exp: Experiment) -> PlantSlice:
-    return PlantSlice(list(exp.agent_ids), exp.n, exp.N, int(sum(len(r) for r in exp.bank_rows)), float(exp.dt),
+    return PlantSlice(list(exp.agent_ids), exp.n, exp.N, exp.ny, float(exp.dt),
                       int(exp.n_rounds), exp.x0, exp.plant.C, exp.Ad, exp.Bd, exp.input, list(exp.sensor_attacks),
                       exp.stepper, list(exp.agent_rows), list(exp.bank_rows), list(exp.schedules or []),
                       [exp.out_neighbours(i) for i in range(exp.N)])

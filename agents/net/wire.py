@@ -14,7 +14,7 @@ import numpy as np
 from transport.codec import MIN_ID, MONITOR_ID, PLANT_ID, Message, Schema, encode_fields
 
 if TYPE_CHECKING:
-    from scenarios.build import Experiment
+    from agents.rounds import PlantTeam, Team
 
 __all__ = ["Wire", "Rejects", "REASONS", "UNKNOWN", "who_name", "diagnostics_meta", "diagnostics_from_meta", "_msg",
            "out_ids_of", "report_to", "receivers_of", "DIAG_PREFIX", "MAX_DIAGNOSTICS"]
@@ -31,14 +31,12 @@ def who_name(sender: int | None) -> str:
 
 
 class Wire:
-    """The schemas of one scenario's messages (``team``: the experiment, or an agent's
-    slice: ``n``, ``N`` and ``ny`` or ``bank_rows``)."""
+    """The schemas of one scenario's messages (``team``: the experiment or a slice of it)."""
 
-    def __init__(self, team: Any) -> None:
+    def __init__(self, team: Team) -> None:
         n, N = team.n, team.N
         self.n, self.N = n, N
-        ny = getattr(team, "ny", None)
-        self.ny = int(sum(len(r) for r in team.bank_rows)) if ny is None else int(ny)
+        self.ny = int(team.ny)
         self.loc = Schema({"meas": {"y": (None,), "wait": (None, 2)}, "ctl": {"wait": (None, 2)}})
         self.truth = Schema({"truth": {"x": (n,)}})
         self.est = Schema({"est": {"x": (None,)}})
@@ -106,7 +104,7 @@ def _msg(kind: str, sender: int, stamp: int, arrays: dict, **kw: Any) -> bytes:
     return encode_fields(kind, sender, stamp, arrays, **kw)
 
 
-def out_ids_of(exp: Experiment) -> dict[int, list[int]]:
+def out_ids_of(exp: PlantTeam) -> dict[int, list[int]]:
     """Agent id -> the ids of its out-neighbours (whom a broadcast report went to)."""
     ids = exp.agent_ids
     return {aid: [ids[j] for j in exp.out_neighbours(i)] for i, aid in enumerate(ids)}

@@ -404,7 +404,7 @@ def design_json(exp: "Experiment") -> dict:
     d = exp.design
     if d is None:
         return {}
-    st = exp.stepper
+    st = _lure_stepper(exp)
     keys = ("L", "K", "P", "U", "mu_d", "mu_a", "mu_d_opt", "lmi_max_eig")
     return {
         "mode": _section(exp).mode,
