@@ -43,8 +43,9 @@ def batch_groups(exp: Experiment, nodes: list[AgentNode]) -> list[Batch]:
     keys: dict[Any, list[int]] = {}
     for i, node in enumerate(nodes):
         est = node.estimator
-        if i not in exp.byzantine and isinstance(est, Batchable):
-            keys.setdefault(est.batch_key(), []).append(i)
+        key = est.batch_key() if i not in exp.byzantine and isinstance(est, Batchable) else None
+        if key is not None:  # None: this estimator steps on its own
+            keys.setdefault(key, []).append(i)
     out = []
     for members in keys.values():
         local = {i: m for m, i in enumerate(members)}

@@ -57,8 +57,9 @@ def held(inbox: Inbox, kk: int, max_age: int) -> list[np.ndarray]:
     ``kk - max_age`` to ``kk``. In round ``k`` after ``k - 1`` that is every message not older
     than ``k - 1 - max_age`` (the inbox holds nothing newer than ``k - 1``); over the steps
     of skipped rounds it leaves out a message stamped after the step, whose estimate is of
-    a later time than the one being integrated."""
-    return [r.value for r in inbox.values() if kk - max_age <= r.stamp <= kk]
+    a later time than the one being integrated. In the senders' order, whatever order the
+    messages arrived in, so that a sum over them rounds alike in every driver."""
+    return [r.value for _, r in sorted(inbox.items()) if kk - max_age <= r.stamp <= kk]
 
 
 @runtime_checkable

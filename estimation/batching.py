@@ -102,10 +102,11 @@ class Batchable(ABC):
     """Declares that an estimator class can be stepped in a :class:`Batch`.
 
     Estimators with equal :meth:`batch_key` go into one batch (e.g. LFRE agents with the
-    same fusion rule and ``f``); :meth:`batch` builds it.
+    same fusion rule and ``f``); :meth:`batch` builds it. A key of None: this estimator steps
+    on its own (e.g. where its stacked product would cost more than the per-agent ones).
     """
 
-    def batch_key(self) -> Hashable:
+    def batch_key(self) -> Hashable | None:
         return type(self)
 
     @classmethod

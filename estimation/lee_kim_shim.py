@@ -57,6 +57,8 @@ from .lti import zoh, zoh_integral
 from .observability import CommonBasis, common_basis
 
 VARIANTS = ("median", "lyapunov", "linear")
+#: largest state dimension whose agents the simulator steps as one stacked batch
+BATCH_MAX_N = 64
 
 
 def shifted_poles(A_o: np.ndarray, *, real_part: float = -1.0) -> np.ndarray:
@@ -91,8 +93,12 @@ class PartialObserverDesign:
     C : (m_i, n) array  the agent's stacked sensor rows
     observable : (o_i,) int array  indices ``l`` with ``s_i^l = 1``
     V_i : (n, o_i) array;  W_i : (o_i, n) array
-    L : (o_i, m_i) array  observer gain
-    poles : (o_i,) complex array  eigenvalues of ``W_i A V_i - L C V_i``
+    L : (o_i, m_i) array  observer gain (for ``gains = "kalman"``: ``Ld / dt``)
+    poles : (o_i,) complex array  eigenvalues of ``W_i A V_i - L C V_i`` (for ``gains =
+        "kalman"``: the continuous-time equivalents ``log(eig(Phi - Ld C V_i)) / dt``)
+    Ld : (o_i, m_i) array or None  the sampled gain at step ``dt`` when designed as such
+        (:mod:`estimation.kalman_gain`); None: the agent places ``exp(poles dt)``
+    dt : float or None  the round step ``Ld`` was designed for
     """
 
     C: np.ndarray
@@ -101,6 +107,8 @@ class PartialObserverDesign:
     W_i: np.ndarray
     L: np.ndarray
     poles: np.ndarray
+    Ld: np.ndarray | None = None
+    dt: float | None = None
 
 
 @dataclass(frozen=True)
@@ -154,6 +162,8 @@ def design(
     *,
     real_part: float = -1.0,
     poles: Sequence[Sequence[complex]] | None = None,
+    gains: str = "place",
+    dt: float | None = None,
 ) -> LKSDesign:
     """Common basis, decompositions and observer gains for every agent.
 
@@ -163,7 +173,11 @@ def design(
     agent_C : sequence of (m_i, n) arrays, the stacked sensor rows each agent reads
     real_part : float, the real part the observer poles are moved to
     poles : optional explicit poles per agent (each of length ``o_i``)
+    gains : ``"place"`` (pole placement, :func:`shifted_poles`) or ``"kalman"`` (the sampled
+        system's steady-state Kalman gain at step ``dt``, :mod:`estimation.kalman_gain`)
     """
+    if gains not in ("place", "kalman"):
+        raise DesignError(f"unknown observer gain design {gains!r}; expected 'place' or 'kalman'")
     A = np.asarray(A, dtype=float)
     B = np.asarray(B, dtype=float).reshape(A.shape[0], -1)
     basis = common_basis(A, agent_C)
@@ -178,6 +192,15 @@ def design(
             continue
         A_o = W_i @ A @ V_i
         C_o = C @ V_i
+        if gains == "kalman":
+            from .kalman_gain import sampled_kalman_gain
+
+            try:
+                Ld, achieved_c = sampled_kalman_gain(A_o, C_o, float(dt or 0.0))
+            except DesignError as exc:
+                raise DesignError(f"agent {i + 1}: {exc}") from None
+            observers.append(PartialObserverDesign(C, obs, V_i, W_i, Ld / float(dt or 1.0), achieved_c, Ld=Ld, dt=dt))
+            continue
         target = np.asarray(poles[i], dtype=complex) if poles is not None else shifted_poles(A_o, real_part=real_part)
         if len(target) != len(obs):
             raise DesignError(f"agent {i + 1}: {len(target)} observer poles given, the observable part has {len(obs)} states")
@@ -307,7 +330,12 @@ class LeeKimShim(Batchable, EstimatePayload):
             C_o = ob.C @ ob.V_i
             Phi_o, _ = zoh_integral(A_o, dt)
             Gou = ob.W_i @ Bd
-            Ld = discrete_gain(Phi_o, C_o, np.exp(ob.poles * dt), agent=agent)
+            if ob.Ld is None:
+                Ld = discrete_gain(Phi_o, C_o, np.exp(ob.poles * dt), agent=agent)
+            elif ob.dt != dt:
+                raise DesignError(f"agent {agent + 1}: the observer gain was designed for dt = {ob.dt}, the agent steps {dt}")
+            else:
+                Ld = ob.Ld
             Phi_z = Phi_o - Ld @ C_o
         else:
             Phi_o = Phi_z = np.zeros((0, 0))
@@ -342,7 +370,13 @@ class LeeKimShim(Batchable, EstimatePayload):
         """Current ``x_hat_i`` (copy), shape ``(n,)``."""
         return self._s[: self.n].copy()
 
-    def batch_key(self) -> tuple:
+    def batch_key(self) -> tuple | None:
+        """None above :data:`BATCH_MAX_N` states: the stacked product is block diagonal, so it
+        costs as many times the per-agent products as there are members (case118's 108 states,
+        six agents: slower than stepping each), and the per-agent step is the definition
+        itself (``rse run`` equals ``rse simulate`` bit for bit)."""
+        if self.n > BATCH_MAX_N:
+            return None
         return (LeeKimShim, self.n, self.dt, self.max_age, self._linear, self._implicit, id(self._u))
 
     @classmethod

@@ -25,6 +25,8 @@ if TYPE_CHECKING:
 
 class ObserverPoles(Strict):
     real_part: float = Field(default=-1.0, lt=0)
+    gain: Literal["place", "kalman"] = Field(
+        default="place", description="pole placement, or the sampled system's Kalman gain (large plants)")
 
 
 class LeeKimShimEstimator(Strict):
@@ -71,11 +73,16 @@ def design(exp: "Experiment", *, check: bool = True) -> LKSDesign | None:
                 source=source,
             )
     try:
-        return lks_design(dense(exp.plant.A), exp.plant.B, agent_C, real_part=est.observer.real_part)
+        return _design(exp, agent_C, est)
     except DesignError as exc:
         if not check:
             return None
         raise ScenarioError(f"estimator: {exc}", source=source) from None
+
+
+def _design(exp: "Experiment", agent_C: list[np.ndarray], est: LeeKimShimEstimator) -> LKSDesign:
+    return lks_design(dense(exp.plant.A), exp.plant.B, agent_C, real_part=est.observer.real_part,
+                      gains=est.observer.gain, dt=exp.dt)
 
 
 def make_estimator(exp: "Experiment", i: int) -> LeeKimShim:
@@ -98,13 +105,14 @@ def conditions(exp: "Experiment") -> list[Condition]:
     des = exp.design
     if des is None:
         try:
-            des = lks_design(dense(exp.plant.A), exp.plant.B, agent_C, real_part=est.observer.real_part)
+            des = _design(exp, agent_C, est)
         except DesignError as exc:
             out.append(Condition("common basis (Assumption 4)", False, str(exc)))
             return out
     counts = des.basis.S.sum(axis=0)
-    out.append(Condition("common basis (Assumption 4)", True,
-                         f"{des.basis.method} basis; banks observing each basis direction: {counts.tolist()}"))
+    per_dir = (f"banks observing each basis direction: {counts.tolist()}" if counts.size <= 24 else
+               f"each of the {counts.size} basis directions observed by {int(counts.min())} to {int(counts.max())} banks")
+    out.append(Condition("common basis (Assumption 4)", True, f"{des.basis.method} basis; {per_dir}"))
     out.append(Condition(f"each direction observed by >= 2q+1 = {2 * est.q + 1} agents (Lemma 1)",
                          bool(np.all(counts >= 2 * est.q + 1)), f"min {int(counts.min())}"))
     Adj = exp.Adj
