@@ -178,3 +178,18 @@ def inertia(H: ArrayLike, S: ArrayLike, *, base_mva: float, f_hz: float) -> np.n
 def damping(d: ArrayLike, S: ArrayLike, *, base_mva: float, f_hz: float) -> np.ndarray:
     """``D = d S / (omega_s S_base)`` (p.u. power per rad/s), ``d`` in p.u. power per p.u. frequency."""
     return np.asarray(d, dtype=float) * np.asarray(S, dtype=float) / (2 * np.pi * f_hz * base_mva)
+
+
+def tie_line_graph(area_buses: list[np.ndarray], bus: np.ndarray, f: np.ndarray, t: np.ndarray) -> list[tuple[int, int]]:
+    """The area graph: 1-based area pairs ``(a, b)``, ``a < b``, joined by a branch.
+
+    ``area_buses[a]``: the (increasing) bus numbers of area ``a``'s generators, the areas in
+    bus order; every bus number in ``bus`` belongs to the area whose generator range is
+    nearest (the cut between two consecutive areas midway between the last generator bus of
+    one and the first of the next); ``f``, ``t``: the branches' end positions into ``bus``.
+    """
+    cuts = np.array([(area_buses[a][-1] + area_buses[a + 1][0]) / 2 for a in range(len(area_buses) - 1)])
+    area = np.searchsorted(cuts, np.asarray(bus, dtype=float))
+    pairs = {(int(min(area[i], area[j])) + 1, int(max(area[i], area[j])) + 1)
+             for i, j in zip(np.asarray(f, dtype=int), np.asarray(t, dtype=int)) if area[i] != area[j]}
+    return sorted(pairs)
