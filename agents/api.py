@@ -54,6 +54,7 @@ __all__ = [
     "deferred_signals",
     "ended_by",
     "replay",
+    "chaos",
 ]
 
 
@@ -119,6 +120,23 @@ def replay(run_dir: str | Path, *, out: str | Path | None = None,
     from .replay_dir import replay_run
 
     return replay_run(run_dir, out=out, set=set, rerun=rerun, progress=progress)
+
+
+def chaos(scenario: str | Path, *, duration: float, faults: str | Iterable[str] | None = None, seed: int = 1,
+          rate: float | None = None, out: str | Path | None = None, set: Iterable[str] = (), spacing: float = 10.0,
+          settle: float = 20.0, budgets: Mapping[str, float] | Iterable[str] = (), hogs: int = 2,
+          threshold: float | None = None, metric: str | None = None, warmup: float = 3.0, rerun: bool = True,
+          say: Callable[[str], None] | None = None) -> Any:
+    """A seeded soak of faults against a realtime team of ``scenario`` on this machine for
+    ``duration`` wall-clock seconds (``rse chaos``, :mod:`agents.chaos`, docs/chaos.md):
+    agents and the monitor killed and restarted, agents frozen, links cut, CPU hogs.
+    Returns a :class:`~agents.chaos.ChaosResult`: ``rows`` (``chaos.parquet``, one per
+    fault), ``failures`` (faults not recovered within ``budgets``), ``status``."""
+    from .chaos import run_chaos
+
+    return run_chaos(scenario, duration=duration, kinds=faults, seed=seed, rate=rate, out=out,
+                     overrides=_override_strings(set), spacing=spacing, settle=settle, budgets=budgets, hogs=hogs,
+                     threshold=threshold, metric=metric, warmup=warmup, rerun=rerun, say=say)
 
 
 def sweep(scenario: str | Path, grid: Mapping[str, Iterable[Any]] | Iterable[str], *, seeds: int = 1,

@@ -278,3 +278,21 @@ class Dashboard:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def log_fault_marks(path: Path, *, run_id: str, dt: float, marks: list[tuple[int, str]]) -> None:
+    """``events/faults`` markers (one ``TextLog`` per ``(round, text)``) on the timelines of
+    the run ``run_id``, written to ``path`` (``rse chaos``: ``chaos.rrd``). The recording id is
+    the run's: opened with the run's ``recording.rrd`` the faults sit on its timeline."""
+    import rerun as rr
+
+    rec = rr.RecordingStream("rse", recording_id=run_id)
+    rec.set_sinks(rr.FileSink(str(path)))
+    try:
+        for k, text in sorted(marks):
+            rec.set_time("k", sequence=int(k))
+            rec.set_time("t", duration=k * dt)
+            rec.log("events/faults", rr.TextLog(text, level="WARN"))
+    finally:
+        rec.flush()
+        rec.disconnect()

@@ -361,19 +361,30 @@ def _check_cost(sc: Scenario, model: PlantModel, Adj: np.ndarray, source: str) -
     return cost
 
 
-def _check_float_horizon(exp: Experiment, source: str) -> None:
-    """An unstable linear plant must not outgrow float64 within the horizon: the state's
-    norm (``|x0|`` plus one round of the largest input, bounded by ``||Ad^k||`` times it)
-    stays below :data:`~estimation.lti.FLOAT_SIGNAL_LIMIT`, else ``run.rounds`` is refused
-    with the safe horizon (the same rule as the Mao-Tabuada plugin's own check)."""
+def safe_horizon(exp: Experiment, max_rounds: int) -> int:
+    """The last round ``k <= max_rounds`` up to which the plant's state stays representable:
+    ``|x0|`` plus one round of the largest input, bounded by ``||Ad^k||`` times it, below
+    :data:`~estimation.lti.FLOAT_SIGNAL_LIMIT` (``max_rounds`` for a plant that stays there;
+    ``rse chaos`` splits a longer soak into teams of at most this many rounds)."""
+    return float_horizon(exp.Ad, x_norm=max(_state_bound(exp), 1e-300), max_rounds=max_rounds)
+
+
+def _state_bound(exp: Experiment) -> float:
+    """``|x0|`` plus one round of the largest input."""
     u = exp.input
     u_max = float(np.linalg.norm(np.abs(u.offset) + np.abs(u.amplitude))) if u.p else 0.0
-    x_norm = float(np.linalg.norm(exp.x0)) + float(np.linalg.norm(exp.Bd, 2) if exp.Bd.size else 0.0) * u_max
-    h = float_horizon(exp.Ad, x_norm=max(x_norm, 1e-300), max_rounds=exp.n_rounds)
+    return float(np.linalg.norm(exp.x0)) + float(np.linalg.norm(exp.Bd, 2) if exp.Bd.size else 0.0) * u_max
+
+
+def _check_float_horizon(exp: Experiment, source: str) -> None:
+    """An unstable linear plant must not outgrow float64 within the horizon
+    (:func:`safe_horizon`), else ``run.rounds`` is refused with the safe horizon (the same
+    rule as the Mao-Tabuada plugin's own check)."""
+    h = safe_horizon(exp, exp.n_rounds)
     if h < exp.n_rounds:
         raise ScenarioError(
             f"run.rounds: the horizon {exp.n_rounds} passes the safe horizon {h} of this unstable plant: by then its "
-            f"state (|x0| = {x_norm:.3g}, growing like ||Ad^k||) would pass {FLOAT_SIGNAL_LIMIT:g}, past which squared "
+            f"state (|x0| = {_state_bound(exp):.3g}, growing like ||Ad^k||) would pass {FLOAT_SIGNAL_LIMIT:g}, past which squared "
             f"norms overflow float64; shorten the run to at most {h} rounds", source=source)
 
 

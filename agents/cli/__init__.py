@@ -15,6 +15,7 @@ import click
 
 from .bench import bench
 from .boundary import boundary
+from .chaos import chaos
 from .compose import compose
 from .deploy import certs, router
 from .evidence import verify_evidence
@@ -35,7 +36,7 @@ def cli() -> None:
 
 
 for _command in (simulate, check, run, plant, agent, monitor, router, certs, compose, report, sweep, boundary, redteam,
-                 bench, replay, verify_evidence):
+                 bench, replay, verify_evidence, chaos):
     cli.add_command(_command)
 
 

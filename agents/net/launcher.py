@@ -151,12 +151,14 @@ class Hooks:
     """What the caller sees of a running team: ``say(line)`` the one-line notes (joins,
     leaves; None: the console's stderr), the progress bar, ``show_urls(urls)`` once the
     monitor serves the dashboard, ``while_serving(summary)`` after the run while a served
-    viewer is still up (the monitor stops when it returns)."""
+    viewer is still up (the monitor stops when it returns), ``stop_when()`` True stops the
+    team as a signal would (a launch on another thread than the main one: ``rse chaos``)."""
 
     say: Callable[[str], None] | None = None
     progress: bool = True
     show_urls: Callable[[dict[str, str]], None] | None = None
     while_serving: Callable[[dict[str, Any] | None], None] | None = None
+    stop_when: Callable[[], bool] | None = None
 
 
 def launch(exp: Any, run_dir: Path, cfg: RunConfig, *, run_id: str | None = None, connect: tuple[str, ...] = (),
@@ -183,7 +185,7 @@ def launch(exp: Any, run_dir: Path, cfg: RunConfig, *, run_id: str | None = None
     team = Team(plan.run_id, plan.endpoints, plan.transport, plan.connect, str(exp.source), tuple(exp.overrides), None,
                 cfg, router=plan.router, secure=str(Path(secure).resolve()) if secure is not None else None)
     sup = Supervisor(run_dir, exp.n_rounds, plan.run_id, say=say, show_urls=hooks.show_urls,
-                     while_serving=hooks.while_serving)
+                     while_serving=hooks.while_serving, stop_when=hooks.stop_when)
     base = dict(scenario=team.scenario, overrides=team.overrides, seed=None, run_id=plan.run_id, cfg=cfg, watch_parent=True)
     specs = _child_specs(run_dir, exp, plan, cfg, slices, base=base, conn=sup.send_conn, dashboard=dashboard)
 

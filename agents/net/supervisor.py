@@ -61,14 +61,18 @@ class Supervisor:
 
     ``say(line)``: one-line notes (joins, leaves); ``update(k, worst)``: the progress bar;
     ``show_urls(urls)``: the dashboard's URLs; ``while_serving(summary)``: called once the
-    run is over while the monitor still serves the recording (it stops when this returns).
+    run is over while the monitor still serves the recording (it stops when this returns);
+    ``stop_when()``: polled while the team runs, True stops it as a signal would (a
+    supervisor on another thread than the main one, which catches no signal: ``rse chaos``).
     """
 
     def __init__(self, run_dir: Path, n_rounds: int, run_id: str, *, say: Callable[[str], None],
                  show_urls: Callable[[dict], None] | None = None,
-                 while_serving: Callable[[dict | None], None] | None = None) -> None:
+                 while_serving: Callable[[dict | None], None] | None = None,
+                 stop_when: Callable[[], bool] | None = None) -> None:
         self.run_dir, self.n_rounds, self.run_id = run_dir, n_rounds, run_id
         self.say, self.show_urls, self.while_serving = say, show_urls, while_serving
+        self.stop_when = stop_when
         self.ctx = context()
         self.recv_conn, self.send_conn = self.ctx.Pipe(duplex=False)  # the monitor's end: send_conn
         self.procs: dict[str, Any] = {}
@@ -120,6 +124,10 @@ class Supervisor:
         status_path = self.run_dir / "status.json"
         last_status = 0.0
         while not self._stopping:
+            if self.stop_when is not None and self.stop_when():
+                self._stopping.append(signal.SIGTERM)
+                self.out.stopping = True
+                return
             self._read_pipe(update)
             now = time.monotonic()
             if now - last_status > 0.5:
