@@ -71,6 +71,15 @@ def chaos_bound(exp: Any, *, metric: str | None = None, limit: float | None = No
                  "--threshold" if limit is not None else "[output] convergence_threshold")
 
 
+def record_lag(rate: float) -> float:
+    """Seconds of record a killed realtime monitor takes with it: the rounds it holds open
+    (up to :data:`~agents.net.config.MONITOR_LAG` for a report that does not come) and at
+    most a second not yet streamed to ``metrics.partial/``."""
+    from agents.net.config import MONITOR_LAG
+
+    return MONITOR_LAG / rate + 1.0
+
+
 def _team_shape(exp: Any) -> tuple[list[int], list[tuple[int, int]], dict[int, list[int]]]:
     """Regular agent ids, the links between two regular agents, out-neighbours by id."""
     ids = list(exp.agent_ids)
@@ -134,13 +143,13 @@ def run_chaos(scenario: str | Path, *, duration: float, kinds: str | Iterable[st
     ep_rounds = _episodes(exp0, int(round(duration * rate)))
     faults = plan_faults(episodes=[r / rate for r in ep_rounds], kinds=parse_kinds(kinds), seed=seed, agents=regular,
                          links=links, spacing=spacing, settle=settle, tail=tail, budgets=parse_budgets(budgets),
-                         hogs=hogs)
+                         hogs=hogs, record_lag=record_lag(rate))
     bound = chaos_bound(exp0, metric=metric, limit=threshold)
     out_dir = Path(out) if out is not None else default_run_dir(f"chaos-{exp0.scenario.run.name}")
     out_dir.mkdir(parents=True, exist_ok=True)
     windows = _cut_windows(faults, rate, exp0)
     plan = {"scenario": str(scenario), "overrides": base, "seed": seed, "rate": rate, "duration": duration,
-            "spacing": spacing, "settle": settle, "tail": tail, "episodes": ep_rounds,
+            "spacing": spacing, "settle": settle, "tail": tail, "record_lag": record_lag(rate), "episodes": ep_rounds,
             "bound": bound.__dict__, "faults": [f.as_dict() | ({"rounds": list(windows[f.index])} if f.index in windows else {})
                                                for f in faults]}
     write_json(out_dir / "chaos.json", plan)
@@ -235,8 +244,11 @@ def _measure(run_dir: Path, faults: list[Fault], inj: Injector, res: ChaosResult
         evs = by_fault.get(f.index, []) + by_fault.get(-1, [])
         nxt = faults[n + 1] if n + 1 < len(faults) else None
         nxt_begin = next((e for e in by_fault.get(nxt.index, []) if e["what"] == "begin"), None) if nxt else None
+        # up to the next fault's beginning, less what the schedule leaves before it (a killed
+        # monitor's record lag); the last fault up to the end of the run
+        gap = 0 if nxt is None else int(round((nxt.at - f.until) * rate))
         until = (windows[nxt.index][0] if nxt is not None and nxt.index in windows else
-                 rec.round_at(nxt_begin["time"]) if nxt_begin else rec.err.shape[0])
+                 rec.round_at(nxt_begin["time"]) - gap if nxt_begin else rec.err.shape[0])
         if not any(e["what"] == "begin" for e in evs) and f.index not in windows:
             continue  # not reached (the team ended first)
         rows.append(measure_fault(rec, f, evs, bound=res.bound, affected=affected_agents(f, regular, outs),

@@ -21,8 +21,8 @@ Kinds (see docs/chaos.md):
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -103,38 +103,56 @@ def parse_budgets(items: Iterable[str] | Mapping[str, float]) -> dict[str, float
     return out
 
 
+def _kinds(rng: np.random.Generator, kinds: Sequence[str]) -> Iterator[str]:
+    """Cycles of the kinds, each a seeded permutation."""
+    while True:
+        yield from (kinds[int(i)] for i in rng.permutation(len(kinds)))
+
+
 def plan_faults(*, episodes: Sequence[float], kinds: Sequence[str], seed: int, agents: Sequence[int],
                 links: Sequence[tuple[int, int]], spacing: float, settle: float, tail: float,
-                budgets: Mapping[str, float] | None = None, hogs: int = 2) -> list[Fault]:
+                budgets: Mapping[str, float] | None = None, hogs: int = 2, record_lag: float = 0.0) -> list[Fault]:
     """The faults of a soak whose episodes last ``episodes`` seconds each (see the module).
 
     ``agents``: the agents that may be killed or frozen (the regular ones); ``links``: the
-    agent pairs that may be cut. Deterministic in its arguments."""
+    agent pairs that may be cut; ``record_lag``: seconds of record a killed monitor takes
+    with it (the rounds it held open): a ``kill-monitor`` comes that much later in its slot,
+    and the fault before it is measured up to where that record begins. Deterministic in
+    its arguments."""
     budgets = dict(BUDGETS) | dict(budgets or {})
     if "cut-link" in kinds and not links:
         raise ScenarioError("--faults cut-link: the team has no link between two regular agents")
     if not agents and any(k in kinds for k in ("kill-agent", "freeze-agent")):
         raise ScenarioError("--faults: the team has no regular agent to kill or freeze")
     rng = np.random.default_rng([seed, _STREAM])
-    slots = [(e, settle + s * spacing, length) for e, length in enumerate(episodes)
-             for s in range(max(0, int(math.floor((length - settle - tail) / spacing + 1e-9))))]
-    order: list[str] = []
-    while len(order) < len(slots):
-        order += [kinds[i] for i in rng.permutation(len(kinds))]
-    faults = []
-    for n, ((episode, at, length), kind) in enumerate(zip(slots, order)):
-        low, high = LASTS[kind]
-        high = min(high, spacing / 3)
-        lasts = round(float(rng.uniform(min(low, high), high)), 2)
-        if kind in ("kill-agent", "freeze-agent"):
-            who: tuple[int, ...] = (int(agents[int(rng.integers(len(agents)))]),)
-        elif kind == "cut-link":
-            a, b = links[int(rng.integers(len(links)))]
-            who = (int(a), int(b))
-        else:
-            who = ()
-        nxt = slots[n + 1] if n + 1 < len(slots) else None
-        until = nxt[1] if nxt is not None and nxt[0] == episode else length
-        faults.append(Fault(n, kind, episode, round(float(at), 3), lasts, who, float(budgets[kind]), round(float(until), 3),
-                            hogs if kind == "cpu-hog" else 0))
+    order = _kinds(rng, kinds)
+    kind = next(order)
+    faults: list[Fault] = []
+    for episode, length in enumerate(episodes):
+        t = settle
+        while True:
+            pre = record_lag if kind == "kill-monitor" else 0.0
+            at = round(float(t + pre), 3)
+            if at + spacing > length - tail + 1e-9:
+                break
+            if faults and faults[-1].episode == episode:
+                faults[-1] = replace(faults[-1], until=round(float(t), 3))
+            faults.append(_fault(rng, len(faults), kind, episode, at, length, spacing, agents, links, budgets, hogs))
+            t, kind = at + spacing, next(order)
     return faults
+
+
+def _fault(rng: np.random.Generator, n: int, kind: str, episode: int, at: float, until: float, spacing: float,
+           agents: Sequence[int], links: Sequence[tuple[int, int]], budgets: Mapping[str, float], hogs: int) -> Fault:
+    low, high = LASTS[kind]
+    high = min(high, spacing / 3)
+    lasts = round(float(rng.uniform(min(low, high), high)), 2)
+    if kind in ("kill-agent", "freeze-agent"):
+        who: tuple[int, ...] = (int(agents[int(rng.integers(len(agents)))]),)
+    elif kind == "cut-link":
+        a, b = links[int(rng.integers(len(links)))]
+        who = (int(a), int(b))
+    else:
+        who = ()
+    return Fault(n, kind, episode, at, lasts, who, float(budgets[kind]), round(float(until), 3),
+                 hogs if kind == "cpu-hog" else 0)
