@@ -123,8 +123,8 @@ def replay(run_dir: str | Path, *, out: str | Path | None = None,
 
 
 def chaos(scenario: str | Path, *, duration: float, faults: str | Iterable[str] | None = None, seed: int = 1,
-          rate: float | None = None, out: str | Path | None = None, set: Iterable[str] = (), spacing: float = 10.0,
-          settle: float = 20.0, budgets: Mapping[str, float] | Iterable[str] = (), hogs: int = 2,
+          rate: float | None = None, out: str | Path | None = None, set: Iterable[str] = (),
+          spacing: float | None = None, settle: float | None = None, budgets: Mapping[str, float] | Iterable[str] = (), hogs: int = 2,
           threshold: float | None = None, metric: str | None = None, warmup: float = 3.0, rerun: bool = True,
           say: Callable[[str], None] | None = None) -> Any:
     """A seeded soak of faults against a realtime team of ``scenario`` on this machine for

@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from estimation.errors import RSEError, ScenarioError
 
 from .inject import Injector
@@ -51,11 +53,24 @@ class ChaosResult:
     status: int = 0
 
 
-def chaos_bound(exp: Any, *, metric: str | None = None, limit: float | None = None) -> Bound:
-    """The bound a recovered agent is back inside: ``metric <= limit`` when given, else the
-    scenario's steady-state ``[[expect]]`` bound (an upper bound on an error metric; of
-    those, the one whose interval ends last, ``final`` last of all), else
-    ``[output] convergence_threshold`` on ``error_inf``."""
+def chaos_bound(exp: Any, *, metric: str | None = None, limit: float | None = None) -> tuple[Bound, int | None]:
+    """The bound a recovered agent is back inside, and the round from which the scenario's
+    team, in the simulator, stays inside it (None: it does not by its horizon).
+
+    ``metric <= limit`` when given; else the looser of the scenario's steady-state
+    ``[[expect]]`` bound (of its upper bounds on an error metric, the one whose interval
+    ends last, ``final`` last of all) and ``[output] convergence_threshold`` on the
+    summary's convergence metric (``relative_error_2`` for a state that grows past 1e3,
+    else ``error_inf``), where both bound that metric; the ``[[expect]]`` bound where only
+    it does."""
+    from agents.runs import simulate
+
+    df = simulate(exp).metrics()
+    x = df[(df["block"] == "x") & df["regular"]]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        grows = bool(np.nanmax((x["error_2"] / x["relative_error_2"]).to_numpy()) > 1e3)
+    conv = "relative_error_2" if grows else "error_inf"
+    thr = float(exp.scenario.output.convergence_threshold)
     best: tuple[float, float, Any] | None = None
     for e in exp.scenario.expect:
         if e.max is None or e.metric not in _ERROR_METRICS:
@@ -63,12 +78,30 @@ def chaos_bound(exp: Any, *, metric: str | None = None, limit: float | None = No
         end = math.inf if e.over == "final" else (exp.window[1] if e.over == "window" else float(e.over[1]))
         if best is None or (end, e.max) > best[:2]:
             best = (end, e.max, e)
-    if metric is None and limit is None and best is not None:
+    if metric is not None or limit is not None:
+        bound = Bound(metric or conv, float(limit if limit is not None else thr), "x", "--threshold")
+    elif best is not None and (best[2].metric != conv or best[2].max >= thr):
         e = best[2]
-        return Bound(e.metric, float(e.max), e.block if e.block in exp.blocks else "x", e.label or "[[expect]]")
-    thr = exp.scenario.output.convergence_threshold
-    return Bound(metric or "error_inf", float(limit if limit is not None else thr), "x",
-                 "--threshold" if limit is not None else "[output] convergence_threshold")
+        bound = Bound(e.metric, float(e.max), "x", e.label or "[[expect]]")
+    else:
+        bound = Bound(conv, thr, "x", "[output] convergence_threshold")
+    err = x.pivot_table(index="k", columns="agent", values=bound.metric).to_numpy()
+    bad = np.flatnonzero(~(err <= bound.limit).all(axis=1))
+    inside = 0 if bad.size == 0 else (None if bad[-1] == len(err) - 1 else int(bad[-1]) + 1)
+    return bound, inside
+
+
+def _spacing(episodes: list[float], kinds: tuple[str, ...], settle: float, tail: float, lag: float,
+             **plan: Any) -> float:
+    """The largest spacing in [6, 10] s at which every kind comes at least 5 times (10 s when
+    none does: a short soak)."""
+    for sp in np.arange(10.0, 5.99, -0.5):
+        got = plan_faults(episodes=episodes, kinds=kinds, spacing=float(sp), settle=settle, tail=tail,
+                          record_lag=lag, **plan)
+        counts = [sum(f.kind == k for f in got) for k in kinds]
+        if min(counts) >= 5:
+            return float(sp)
+    return 10.0
 
 
 def record_lag(rate: float) -> float:
@@ -125,7 +158,7 @@ def _episode_overrides(exp: Any, rounds: int, faults: list[Fault], windows: dict
 
 def run_chaos(scenario: str | Path, *, duration: float, kinds: str | Iterable[str] | None = None, seed: int = 1,
               rate: float | None = None, out: str | Path | None = None, overrides: Iterable[str] = (),
-              spacing: float = 10.0, settle: float = 20.0, tail: float = 5.0,
+              spacing: float | None = None, settle: float | None = None, tail: float = 3.0,
               budgets: Mapping[str, float] | Iterable[str] = (), hogs: int = 2, threshold: float | None = None,
               metric: str | None = None, rerun: bool = True, warmup: float = 3.0,
               say: Callable[[str], None] | None = None) -> ChaosResult:
@@ -135,27 +168,36 @@ def run_chaos(scenario: str | Path, *, duration: float, kinds: str | Iterable[st
 
     say = say or (lambda line: None)
     base = list(overrides)
+    kinds_t, budget_s = parse_kinds(kinds), parse_budgets(budgets)  # bad input fails before any work
     exp0 = load(scenario, set=base)
     rate = float(rate or 1.0 / exp0.dt)
     if not (duration > 0 and math.isfinite(duration)):
         raise ScenarioError(f"--duration must be a positive number of seconds, got {duration!r}")
     regular, links, outs = _team_shape(exp0)
     ep_rounds = _episodes(exp0, int(round(duration * rate)))
-    faults = plan_faults(episodes=[r / rate for r in ep_rounds], kinds=parse_kinds(kinds), seed=seed, agents=regular,
-                         links=links, spacing=spacing, settle=settle, tail=tail, budgets=parse_budgets(budgets),
-                         hogs=hogs, record_lag=record_lag(rate))
-    bound = chaos_bound(exp0, metric=metric, limit=threshold)
+    bound, inside = chaos_bound(exp0, metric=metric, limit=threshold)
+    if settle is None:  # the simulated team's time to be inside the bound for good, and half of it again
+        settle = max(5.0, 1.5 * inside / rate) if inside is not None else 20.0
+    lag = record_lag(rate)
+    common: dict[str, Any] = dict(seed=seed, agents=regular, links=links, budgets=budget_s, hogs=hogs)
+    episodes = [r / rate for r in ep_rounds]
+    if spacing is None:
+        spacing = _spacing(episodes, kinds_t, settle, tail, lag, **common)
+    faults = plan_faults(episodes=episodes, kinds=kinds_t, spacing=spacing, settle=settle, tail=tail,
+                         record_lag=lag, **common)
     out_dir = Path(out) if out is not None else default_run_dir(f"chaos-{exp0.scenario.run.name}")
     out_dir.mkdir(parents=True, exist_ok=True)
     windows = _cut_windows(faults, rate, exp0)
     plan = {"scenario": str(scenario), "overrides": base, "seed": seed, "rate": rate, "duration": duration,
-            "spacing": spacing, "settle": settle, "tail": tail, "record_lag": record_lag(rate), "episodes": ep_rounds,
-            "bound": bound.__dict__, "faults": [f.as_dict() | ({"rounds": list(windows[f.index])} if f.index in windows else {})
-                                               for f in faults]}
+            "spacing": spacing, "settle": settle, "tail": tail, "record_lag": lag, "episodes": ep_rounds,
+            "bound": bound.__dict__, "inside_from_round": inside,
+            "faults": [f.as_dict() | ({"rounds": list(windows[f.index])} if f.index in windows else {}) for f in faults]}
     write_json(out_dir / "chaos.json", plan)
     if len(ep_rounds) > 1:
-        say(f"{exp0.scenario.run.name}: the plant's state outgrows float64 after {ep_rounds[0]} rounds; "
-            f"the soak runs as {len(ep_rounds)} teams in turn")
+        say(f"{exp0.scenario.run.name}: the plant's state would outgrow float64 within the soak; it runs as "
+            f"{len(ep_rounds)} teams of {ep_rounds[0]} rounds in turn")
+    say(f"{len(faults)} fault(s) every {spacing:g} s after {settle:.1f} s; recovered: {bound.metric} <= "
+        f"{bound.limit:g} ({bound.source}); schedule {out_dir / 'chaos.json'}")
     res = ChaosResult(out_dir, faults, [], bound)
     stop = threading.Event()
     prev = _catch_signals(stop)

@@ -22,10 +22,11 @@ from .common import EXIT_INTERRUPTED, handle_errors
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Run directory (default: runs/chaos-NAME-TIMESTAMP).")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE", help="Override a scenario key.")
-@click.option("--spacing", type=click.FloatRange(min=1.0), default=10.0, show_default=True, metavar="S",
-              help="Seconds between two faults (each one's recovery is measured before the next).")
-@click.option("--settle", type=click.FloatRange(min=0.0), default=20.0, show_default=True, metavar="S",
-              help="Seconds after round 0 before the first fault (the team converges).")
+@click.option("--spacing", type=click.FloatRange(min=1.0), default=None, metavar="S",
+              help="Seconds between two faults (default: the largest in [6, 10] with every kind 5 times).")
+@click.option("--settle", type=click.FloatRange(min=0.0), default=None, metavar="S",
+              help="Seconds after round 0 before the first fault (default: 1.5 x the simulated team's time "
+                   "to get inside the bound for good, at least 5).")
 @click.option("--budget", "budgets", multiple=True, metavar="KIND=S",
               help="Seconds after a fault's end within which it must be recovered (repeatable; defaults in docs/chaos.md).")
 @click.option("--hogs", type=click.IntRange(1, 64), default=2, show_default=True, help="CPU hog processes per burst.")
@@ -38,7 +39,7 @@ from .common import EXIT_INTERRUPTED, handle_errors
 @click.option("--no-rerun", is_flag=True, help="No Rerun recording.")
 @handle_errors
 def chaos(scenario: Path, duration: float, faults: str | None, seed: int, rate: float | None, out: Path | None,
-          overrides: tuple[str, ...], spacing: float, settle: float, budgets: tuple[str, ...], hogs: int,
+          overrides: tuple[str, ...], spacing: float | None, settle: float | None, budgets: tuple[str, ...], hogs: int,
           threshold: float | None, metric: str | None, warmup: float, no_rerun: bool) -> None:
     """Run SCENARIO as a realtime team for --duration seconds under a seeded schedule of faults.
 

@@ -54,7 +54,7 @@ def test_a_short_soak_recovers_from_every_kind_and_a_budget_of_zero_fails(procs,
     plan = json.loads((out / "chaos.json").read_text())
     # the schedule is the seed's: the same function of the same arguments
     expect = plan_faults(episodes=[49.0], kinds=KINDS, seed=4, agents=[1, 2, 3, 4, 5],
-                         links=[(1, 2), (1, 5), (2, 3), (3, 4), (4, 5)], spacing=6.0, settle=6.0, tail=5.0,
+                         links=[(1, 2), (1, 5), (2, 3), (3, 4), (4, 5)], spacing=6.0, settle=6.0, tail=3.0,
                          budgets={"kill-agent": 0.0}, record_lag=128 / 20 + 1.0)
     assert plan["seed"] == 4 and [{k: v for k, v in f.items() if k != "rounds"} for f in plan["faults"]] == \
         [f.as_dict() for f in expect]

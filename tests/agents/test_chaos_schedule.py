@@ -12,6 +12,7 @@ import pytest
 from agents.chaos import BUDGETS, KINDS, Fault, parse_budgets, parse_kinds, plan_faults
 from agents.chaos.measure import recovered_round, undeclared_rounds
 from estimation.errors import ScenarioError
+from tests.conftest import SCENARIOS
 
 RING = dict(agents=[1, 2, 3, 4, 5], links=[(1, 2), (2, 3), (3, 4), (4, 5), (1, 5)])
 
@@ -107,3 +108,15 @@ def test_missing_reports_outside_the_declared_gaps_are_counted():
 def test_fault_targets_read_well():
     f = Fault(0, "cut-link", 0, 10.0, 2.0, (1, 5), 6.0, 20.0)
     assert f.target == "link 1<->5" and f.as_dict()["agents"] == [1, 5]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--faults", "kill-agent,explode"], "--faults: unknown fault kind(s) explode; valid: kill-agent"),
+    (["--budget", "cut-link=soon"], "--budget cut-link=soon: expected KIND=SECONDS"),
+    (["--set", "network.graph.kind=rnig"], "network.graph: unknown kind 'rnig'"),
+])
+def test_bad_input_exits_2_with_one_line(run_rse, tmp_path, args, message):
+    res = run_rse("chaos", str(SCENARIOS / "lee_kim_shim.toml"), "--duration", "30", *args, "--out", str(tmp_path / "c"))
+    assert res.returncode == 2, res.stderr
+    assert message in res.stderr and "Traceback" not in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
