@@ -108,3 +108,22 @@ def error(msg: str) -> None:
 
 def is_tty() -> bool:
     return sys.stderr.isatty()
+
+
+def health_table(summary: dict[str, Any]) -> Table | None:
+    """A networked run's realtime health (:mod:`agents.health`), a row per agent; None when
+    the summary has none (a simulator run)."""
+    from .health import HEALTH_COLUMNS, health_rows
+
+    rows = health_rows(summary)
+    if not rows:
+        return None
+    h = summary["health"]
+    rate = f" at {h['rate_hz']:g} Hz" if h.get("rate_hz") else ""
+    t = Table(title=f"health ({h.get('mode')}{rate}; plant deadline misses: {fmt(h.get('deadline_misses'))})",
+              title_justify="left")
+    for c in HEALTH_COLUMNS:
+        t.add_column(c, justify="right")
+    for r in rows:
+        t.add_row(*r)
+    return t

@@ -115,6 +115,7 @@ class Dashboard:
             options.urls["web"] = f"http://{options.public_host}:{web_port}/?url={server.uri.replace('0.0.0.0', options.public_host)}"
         self._map_every = max(1, math.ceil((exp.n_rounds + 1) / MAP_FRAMES))
         self._static_logged = False
+        self._unreported: np.ndarray | None = None  # per agent: rounds with no report (_log_unreported)
         dst, src = np.nonzero(exp.Adj)  # edge src -> dst (dst receives from src)
         self._src, self._dst = src, dst
         self.log_static()  # also imports the archetypes before the rounds start
@@ -140,6 +141,7 @@ class Dashboard:
             rrb.Spatial2DView(origin="/map", name="map: agents, locations, links delivered (green) / dropped (grey)"),
             rrb.TimeSeriesView(origin="/state", name="true state vs estimates", time_ranges=whole),
             rrb.TimeSeriesView(origin="/counters", name="link counters", time_ranges=whole),
+            rrb.TimeSeriesView(origin="/health", name="rounds without a report (realtime: skipped)", time_ranges=whole),
         ]
         return rrb.Blueprint(
             rrb.Horizontal(rrb.Vertical(*left), rrb.Vertical(*right), column_shares=[3, 2]),
@@ -216,6 +218,7 @@ class Dashboard:
                 i = exp.agent_ids.index(aid)
                 rec.send_columns(f"state/{name}/agent{aid}", indexes=times, columns=rr.Scalars.columns(scalars=est[:, i] @ row))
         self._log_map(rows, delivered)
+        self._log_unreported(rows, mon)
         if counters is not None:
             k = int(rows[-1])
             rec.set_time("k", sequence=k)
@@ -223,6 +226,32 @@ class Dashboard:
             for i, aid in enumerate(exp.agent_ids):
                 for c, what in enumerate(("delivered", "dropped", "late", "rejected")):
                     rec.log(f"counters/agent{aid}/{what}", rr.Scalars(float(counters[i, c])))
+
+    def _log_unreported(self, rows: np.ndarray, mon: Any) -> None:
+        """``health/agentI``: the rounds so far with no report from agent I (no error
+        recorded: a realtime agent that skipped the round, or whose report was lost)."""
+        missing = np.isnan(mon.error_2[rows, :, 0]).sum(axis=0)
+        if self._unreported is None:
+            self._unreported = np.zeros(self.exp.N, dtype=np.int64)
+        self._unreported += missing
+        k = int(rows[-1])
+        self.rec.set_time("k", sequence=k)
+        self.rec.set_time("t", duration=k * self.exp.dt)
+        for i, aid in enumerate(self.exp.agent_ids):
+            self.rec.log(f"health/agent{aid}", self.rr.Scalars(float(self._unreported[i])))
+
+    def log_health(self, health: dict[str, Any], k: int, line: str | None) -> None:
+        """``health/summary``: the run's realtime health (``summary.json``'s ``health``) as
+        a table at its last round ``k``, with the line that says the rate was not kept."""
+        from .health import HEALTH_COLUMNS, health_rows
+
+        rows = health_rows({"health": health})
+        text = [f"**{line}**", ""] if line else []
+        text += ["| " + " | ".join(HEALTH_COLUMNS) + " |", "|" + "---|" * len(HEALTH_COLUMNS)]
+        text += ["| " + " | ".join(r) + " |" for r in rows]
+        self.rec.set_time("k", sequence=int(k))
+        self.rec.set_time("t", duration=k * self.exp.dt)
+        self.rec.log("health/summary", self.rr.TextDocument("\n".join(text), media_type="text/markdown"))
 
     def _log_map(self, rows: np.ndarray, delivered: dict[int, np.ndarray] | None) -> None:
         """Agent positions and delivered / dropped links of the map frames in ``rows``, as

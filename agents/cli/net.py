@@ -67,8 +67,9 @@ def _endpoints(connect: tuple[str, ...]) -> tuple[str, ...]:
 
 
 def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
-    from ..console import expectations_table, summary_table
+    from ..console import expectations_table, health_table, summary_table
     from ..console import out as console
+    from ..health import rate_line
     from ..summary import ExpectationResult
 
     if summary is None:
@@ -80,9 +81,15 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
     rej = summary.get("rejected") or {}
     if rej:
         console.print("rejected messages: " + ", ".join(f"{who}: {rec.get('total', 0)}" for who, rec in rej.items()))
+    health = health_table(summary) if (summary.get("health") or {}).get("mode") == "realtime" else None
+    if health is not None:
+        console.print(health)
     perf = summary.get("performance") or {}
     if perf.get("rounds_per_s"):
         console.print(f"{perf['rounds']} rounds in {perf['elapsed_s']:.2f} s: {perf['rounds_per_s']:,.0f} rounds/s")
+    line = rate_line(summary)
+    if line:
+        console.print(line)
     failed = [r for r in results if r.failed]
     if failed:
         raise ExpectationFailed(f"{len(failed)} of {len(results)} expectation(s) failed: " + "; ".join(r.label for r in failed))

@@ -27,7 +27,8 @@ def report(run_dir: Path, other: Path | None, png_dir: Path | None) -> None:
     (`rse boundary`): then the sweep's table is printed, one row per grid point (runs, the
     median and maximum over seeds of the worst regular agent's errors).
     """
-    from ..console import expectations_table, out
+    from ..console import expectations_table, health_table, out
+    from ..health import rate_line
     from ..report import boundary_lines, compare_table, figure_compare, figure_errors, figure_states, is_sweep_dir, load_run, report_table, sweep_table
     from ..summary import ExpectationResult
 
@@ -36,6 +37,12 @@ def report(run_dir: Path, other: Path | None, png_dir: Path | None) -> None:
         results = [ExpectationResult.from_dict(e) for e in run.summary.get("expectations", [])]
         if results:
             out.print(expectations_table(results))
+        health = health_table(run.summary) if (run.summary.get("health") or {}).get("mode") == "realtime" else None
+        if health is not None:
+            out.print(health)
+        line = rate_line(run.summary)
+        if line:
+            out.print(line)
 
     if is_sweep_dir(run_dir):
         if other is not None or png_dir is not None:

@@ -20,6 +20,7 @@ from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
 from .config import LAZY, RunConfig
+from .health import LinkHealth
 from .protocol import Role
 from .rejoin import RejoinChecks
 from .schedule import schedule_for
@@ -94,6 +95,7 @@ class AgentProcess(RejoinChecks, Role):
             self.view = NetworkView(part.view, node.channel)
             node.view = self.view
             self._done_schema = self.wire.done
+        self.health = LinkHealth(list(self.in_ids), 1.0 / cfg.rate if cfg.rate else part.dt)
 
     def on_reject(self, sender: int | None) -> None:
         if sender is not None:
@@ -146,6 +148,7 @@ class AgentProcess(RejoinChecks, Role):
                 self.rejects.add(PLANT_ID, "range")
                 return
             self.meas[m.stamp] = (None if m.meta.get("nomeas") else y, wait, now)
+            self.health.measured(m.stamp, now)
             return
         if self.view is not None:
             self._handle_view(key, payload)
@@ -197,6 +200,7 @@ class AgentProcess(RejoinChecks, Role):
         """Hand a decoded estimate of in-neighbour ``j`` to the node (its channel decides)
         and note its arrival for the lockstep wait lists."""
         self.node.receive(j, stamp, x)
+        self.health.arrived(j, stamp, self.last)
         if stamp >= self.last - 2 and len(self.arrived) < 4096:
             self.arrived.setdefault(stamp, set()).add(j)
 
@@ -320,6 +324,7 @@ class AgentProcess(RejoinChecks, Role):
         except MessageError as exc:  # a non-finite estimate cannot go on the wire
             log.warning("agent %d: round %d message not sent: %s", aid, k, exc)
             to, stamps = [], []
+        self.health.sent(to)
         meta: dict[str, Any] = {}
         if not np.all(np.isfinite(own)):
             own, meta = np.zeros_like(own), {"nonfinite": True}
@@ -349,6 +354,7 @@ class AgentProcess(RejoinChecks, Role):
             if taken is None:
                 return
             k, y = taken
+            self.health.used(now)
             out = self.node.run_round(k, y)
             self.last = k
             self.rounds_run += 1
@@ -461,7 +467,8 @@ class AgentProcess(RejoinChecks, Role):
                     await asyncio.wait_for(self.changed.wait(), timeout)
                 except TimeoutError:
                     pass
-            self.send_stats(self.id, link_rows(self.node.links), rounds=self.rounds_run, skipped=self.skipped, waited_out=self.waited_out, polls=self.polls)
+            self.send_stats(self.id, link_rows(self.node.links), health=(self.health.ages_rows(), self.health.out_rows()),
+                            rounds=self.rounds_run, skipped=self.skipped, waited_out=self.waited_out, polls=self.polls)
             await asyncio.sleep(0.05)
             return {"rounds": self.rounds_run}
         finally:

@@ -421,6 +421,7 @@ class MonitorProcess(Role):
         return self._finish()
 
     def _finish(self, *, complete: bool = True, reason: str | None = None) -> MonitorResult:
+        from agents.health import health_section, rate_line
         from agents.rounds import links_table, regular_mask
         from agents.summary import summarise_run
 
@@ -455,6 +456,10 @@ class MonitorProcess(Role):
         summary["mode"] = self.cfg.mode
         summary["membership"] = self.membership
         summary["processes"] = processes
+        summary["health"] = health_section(self.stats, list(exp.agent_ids), summary["links"], mode=self.cfg.mode,
+                                           rate=self.cfg.rate, deadline_misses=perf.get("deadline_misses"))
+        if self.dashboard is not None and hasattr(self.dashboard, "log_health"):
+            self.dashboard.log_health(summary["health"], mon.last_round, rate_line(summary))
         if self.out_dir is not None:
             from agents.recorder import write_run
 

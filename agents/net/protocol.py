@@ -249,9 +249,14 @@ class Role(Generic[T]):
         log.info("%s: %s; reconnecting (%d of at most %d)", self.name, why, self.reconnects, RECONNECTS)
         return await self.bus.reconnect()
 
-    def send_stats(self, sender: int, links: np.ndarray | None = None, **meta: Any) -> None:
+    def send_stats(self, sender: int, links: np.ndarray | None = None,
+                   health: tuple[np.ndarray, np.ndarray] | None = None, **meta: Any) -> None:
+        """The process's final figures to the monitor: its link rows, rejects, ``health``
+        (an agent's :meth:`~agents.net.health.LinkHealth.ages_rows` and ``out_rows``) and
+        ``meta`` (counters, memory, CPU)."""
         links = np.zeros((0, 6)) if links is None else links
+        ages, out = health if health is not None else (np.zeros((0, 5)), np.zeros((0, 2)))
         meta = {"cmd": "stats", **process_figures(), "bridge_dropped": int(self.bus.stats.dropped_full),
                 "batches": self.batches, **meta}
-        self.bus.publish(self.keys.ctl("stats", sender),
-                         _msg("ctl", sender, 0, {"links": links, "rejected": self.rejects.as_array()}, meta=meta))
+        arrays = {"links": links, "rejected": self.rejects.as_array(), "ages": ages, "out": out}
+        self.bus.publish(self.keys.ctl("stats", sender), _msg("ctl", sender, 0, arrays, meta=meta))

@@ -6,7 +6,7 @@ agent 1 has its sensor attacked from t = 10 s); every process is a Zenoh client 
 router at ``tcp/10.A.B.1:7447``, started with ``ip netns exec HOST rse ...``.
 
 1. lockstep across the hosts equals ``rse simulate`` (every estimate within 1e-12);
-2. realtime at 100 Hz, host 2's cable (agent 3) pulled for 3 s under attack (t = 13 s):
+2. realtime at the calibrated rate (100 Hz on a quiet machine), host 2's cable (agent 3) pulled for 3 s under attack (t = 13 s):
    the others keep running, agent 3 comes back by itself, each agent within ``BOUND_END``
    over [22, 24] (the attacked agent 1 within the scenario's 0.25, the others tighter);
 3. realtime, host 3 (agents 4 and 5) partitioned from the router's host for 3 s by bridge
@@ -24,15 +24,18 @@ back up to 0.6 off, and agent 1's peak and its error over [22, 24] depended on w
 message came first (peaks 0.28 to 0.43; over the window 0.217 to 0.254, once over the
 bound).
 
-Accuracy in realtime needs a machine that keeps the 100 Hz rate: a measurement or an
-estimate a process cannot take in time is dropped for it alone, so on a loaded machine
-agents skip rounds and their errors grow with nothing wrong in the code (the attacked agent
-1 at 0.25 over [22, 24] when the team reported 86 to 94% of its rounds; load average 60 on
-two cores: 0.19 at t = 10, agent 1 at 0.81). Each case therefore
-measures the share of rounds every agent reported before the fault and over the window;
-the accuracy bounds are asserted when it is at least ``KEPT_UP``, otherwise the case skips its accuracy part
-with that figure (the fault-tolerance checks, and ``BOUND_LOADED`` for every agent over the
-window, are asserted whatever the load).
+Accuracy in realtime needs a machine that keeps the rate: a measurement or an estimate a
+process cannot take in time is dropped for it alone, so on a loaded machine agents skip
+rounds and their errors grow with nothing wrong in the code (the attacked agent 1 at 0.25
+over [22, 24] when the team reported 86 to 94% of its rounds; load average 60 on two cores:
+0.19 at t = 10, agent 1 at 0.81). The realtime cases therefore run at the rate this machine
+keeps: the ``rate`` fixture calibrates it first (tests/realtime.py: a short probe of the
+team from 100 Hz down, not below ``RATE_FLOOR``); scenario time stays ``DT`` per round, so a
+lower rate only stretches the run in wall time. Each case measures the share of rounds
+every agent reported before the fault and over the window; when the load changed since the
+calibration and that share is below ``KEPT_UP``, the case runs once more at a lower rate,
+and asserts its accuracy bounds (the fault-tolerance checks, and ``BOUND_LOADED`` for every
+agent over the window, hold on each run).
 
 Needs root (skipped otherwise, or when ``ip netns add`` fails). Each case is bounded
 (``CASE_S``, only a hang reaches it) and kills every process it started and deletes its
@@ -65,7 +68,8 @@ HOSTS = {1: (1, 2), 2: (3,), 3: (4, 5)}  # agent hosts -> their agents; host 0: 
 PORT = 7447
 CASE_S = 240.0  # wall-time budget of one case (a 24 s realtime run takes 30 to 45 s on a loaded machine)
 DT = 0.01
-RATE = 100.0  # realtime: scenario time = wall time
+RATE = 100.0  # realtime: scenario time = wall time (the rate tried first; see the rate fixture)
+RATE_FLOOR = 40.0  # the lowest rate a case runs at (a 24 s scenario: 60 s of wall time)
 # realtime cases: 24 s of scenario; the attack starts at t = 10 and its transient is over by
 # t = 13 (the simulator's worst error from t = 13 on is 0.2165 <= 0.25); the fault starts
 # at t = 13 and lasts 3 s of wall time; the bounds are checked 6 s after it, over [22, 24]
@@ -205,6 +209,11 @@ class Team:
             assert code == 0, f"{name}: exit status {code}: {self.log(name)[-2000:]}"
             assert "Traceback" not in self.log(name), self.log(name)
         self.wall_s = time.monotonic() - self.t0
+        for name in ("watch", "router"):  # the host's port is free for another team
+            p = self.procs.get(name)
+            if p is not None and p.poll() is None:
+                p.terminate()
+                p.wait(timeout=5)
         return codes
 
 
@@ -281,8 +290,39 @@ def _check_run(team: Team, faulty: tuple[int, ...], k_down: int, k_up: int) -> d
     return fig
 
 
-def _fault_case(net: Net, tmp_path: Path, name: str, cut: Any, heal: Any, faulty: tuple[int, ...]) -> dict:
-    team = Team(net, tmp_path / "run", RT, ("--mode", "realtime", "--rate", f"{RATE:g}"), run_id=f"netns-{name}",
+@pytest.fixture(scope="module")
+def rate() -> float:
+    """The realtime rate this machine keeps for the team: a probe of lee_kim_shim.toml's
+    team (a router, clients on loopback) from 100 Hz down until every agent ran 99% of its
+    rounds (tests/realtime.py)."""
+    from tests.realtime import calibrate
+
+    r, probes = calibrate(LKS, start=RATE, floor=RATE_FLOOR, extra=("--router", "--set", "run.duration=4"))
+    print(f"\nrealtime rate: {r:g} Hz (probes: rate, share of rounds the slowest agent ran: {probes})")
+    return r
+
+
+def _fault_case(net: Net, tmp_path: Path, name: str, cut: Any, heal: Any, faulty: tuple[int, ...], rate: float) -> dict:
+    """The fault case at ``rate``; once more at a lower rate when the machine did not keep
+    this one (its load changed since the calibration), and the accuracy asserted then."""
+    fig = _fault_run(net, tmp_path / "first", name, cut, heal, faulty, rate)
+    if fig["present_before_and_end"] < KEPT_UP and rate > RATE_FLOOR:
+        lower = max(RATE_FLOOR, round(rate * fig["present_before_and_end"] * 0.8, 1))
+        print(f"{name}: the machine did not keep {rate:g} Hz ({fig['present_before_and_end']:.1%} of the rounds); "
+              f"again at {lower:g} Hz")
+        fig = _fault_run(net, tmp_path / "again", name, cut, heal, faulty, lower)
+        rate = lower
+    assert fig["present_before_and_end"] >= KEPT_UP, (
+        f"the machine did not keep {rate:g} Hz: an agent reported only {fig['present_before_and_end']:.1%} of the "
+        f"rounds before the fault or over the window (< {KEPT_UP:.0%})")
+    assert np.nanmax(fig["at_10"]) <= BOUND_T10, fig["at_10"]
+    assert all(fig["worst_end"][a - 1] <= BOUND_END[a] for a in range(1, 6)), (fig["worst_end"], BOUND_END)
+    assert fig["expectations_ok"]
+    return fig
+
+
+def _fault_run(net: Net, tmp_path: Path, name: str, cut: Any, heal: Any, faulty: tuple[int, ...], rate: float) -> dict:
+    team = Team(net, tmp_path / "run", RT, ("--mode", "realtime", "--rate", f"{rate:g}"), run_id=f"netns-{name}",
                 watch=True)
     k_down = int(round(FAULT_AT / DT))
     team.wait_round(k_down)
@@ -293,7 +333,7 @@ def _fault_case(net: Net, tmp_path: Path, name: str, cut: Any, heal: Any, faulty
     k_up = team.round()
     team.finish()
     fig = _check_run(team, faulty, k_down, k_up)
-    fig.update(outage_s=round(t_up - t_down, 2), k_down=k_down, k_up=k_up, wall_s=round(team.wall_s, 1),
+    fig.update(rate=rate, outage_s=round(t_up - t_down, 2), k_down=k_down, k_up=k_up, wall_s=round(team.wall_s, 1),
                back_after_s={a: round(v - k_up * DT, 2) for a, v in fig["back_at"].items()})
     print(f"\n{name}: {fig}")
     # the faulty agents back by themselves soon after the healing. TCP resends what the cut
@@ -305,13 +345,6 @@ def _fault_case(net: Net, tmp_path: Path, name: str, cut: Any, heal: Any, faulty
     # whatever the load: no agent far off (an overloaded machine's worst was 0.81, agent 1 at
     # load 60; an unattacked agent 1,000 times less accurate than today is at 1.6 or more)
     assert max(fig["worst_end"]) <= BOUND_LOADED, (fig["worst_end"], BOUND_LOADED)
-    if fig["present_before_and_end"] < KEPT_UP:
-        pytest.skip(f"the machine did not keep the {RATE:g} Hz rate: an agent reported only "
-                    f"{fig['present_before_and_end']:.1%} of the rounds before the fault or over the window "
-                    f"(< {KEPT_UP:.0%}); accuracy not asserted")
-    assert np.nanmax(fig["at_10"]) <= BOUND_T10, fig["at_10"]
-    assert all(fig["worst_end"][a - 1] <= BOUND_END[a] for a in range(1, 6)), (fig["worst_end"], BOUND_END)
-    assert fig["expectations_ok"]
     return fig
 
 
@@ -344,8 +377,8 @@ def test_lockstep_across_hosts_equals_the_simulator(net, tmp_path):
           f"rounds/s, wall {team.wall_s:.1f} s (router up in {team.router_up_s:.2f} s)")
 
 
-def test_a_pulled_cable_for_3_s(net, tmp_path):
-    """Realtime at 100 Hz; host 2 (agent 3) loses its link at t = 13 s for 3 s of wall
+def test_a_pulled_cable_for_3_s(net, tmp_path, rate):
+    """Realtime at the calibrated rate; host 2 (agent 3) loses its link at t = 13 s for 3 s of wall
     time. The others keep running; agent 3 is silent while cut off and comes back by
     itself (its Zenoh session outlives the outage: no leave, no restart); everyone within
     0.01 at t = 10 and within 0.25 over [22, 24]."""
@@ -355,13 +388,13 @@ def test_a_pulled_cable_for_3_s(net, tmp_path):
         assert not net.link_is_up(2)
         return t
 
-    _fault_case(net, tmp_path, "cable", cut, lambda: net.link(2, up=True), (3,))
+    _fault_case(net, tmp_path, "cable", cut, lambda: net.link(2, up=True), (3,), rate)
 
 
-def test_a_partition_of_two_agents_for_3_s(net, tmp_path):
-    """Realtime at 100 Hz; bridge port isolation cuts host 3 (agents 4 and 5) off the
+def test_a_partition_of_two_agents_for_3_s(net, tmp_path, rate):
+    """Realtime at the calibrated rate; bridge port isolation cuts host 3 (agents 4 and 5) off the
     router's host 0 at t = 13 s for 3 s, every link staying up. The run survives (every
     process exits 0), agents 1 to 3 keep running, agents 4 and 5 come back by themselves,
     everyone within 0.01 at t = 10 and within 0.25 over [22, 24]."""
     _fault_case(net, tmp_path, "partition", lambda: net.isolate([0, 3], on=True),
-                lambda: net.isolate([0, 3], on=False), (4, 5))
+                lambda: net.isolate([0, 3], on=False), (4, 5), rate)
