@@ -12,7 +12,9 @@ measured round and skips the older ones it had no time for). Per link ``j->i``:
 * ``late``: arrived after the receiver's round meant to use them had run, or delayed by
   the channel model;
 * ``age_p50_ms``, ``age_p99_ms``: the age of the estimates when a round took them in
-  (:mod:`agents.net.health`).
+  (:mod:`agents.net.health`);
+* ``stalls``: the times nothing came from ``j`` for a second (and 10 rounds) while its
+  token was present (:meth:`agents.net.health.LinkHealth.stalled`).
 
 ``deadline_misses``: the plant's rounds that started after their wall-clock time. A
 realtime run whose agents skipped rounds did not keep its rate: ``kept`` is false,
@@ -53,14 +55,14 @@ def _links(stats: dict[str, Any], agent_ids: list[int], links: dict[str, dict[st
         m = stats.get(str(aid))
         if m is None or "ages" not in m.arrays:
             continue
-        for j, p50, p99, _aged, late in m.arrays["ages"]:
+        for j, p50, p99, _aged, late, stalls in m.arrays["ages"]:
             key = f"{int(j)}->{aid}"
             c = links.get(key, {})
             arrived = int(c.get("sent", 0))
             sent = published.get(key)
             out[key] = {"sent": sent, "arrived": arrived, "lost_model": int(c.get("dropped", 0)),
                         "lost_transport": None if sent is None else max(sent - arrived, 0),
-                        "late": int(late) + int(c.get("late", 0)),
+                        "late": int(late) + int(c.get("late", 0)), "stalls": int(stalls),
                         "age_p50_ms": None if p50 < 0 else float(p50), "age_p99_ms": None if p99 < 0 else float(p99)}
     return out
 
@@ -92,7 +94,7 @@ def rate_line(summary: dict[str, Any]) -> str | None:
 
 
 def health_rows(summary: dict[str, Any]) -> list[list[str]]:
-    """Per agent: rounds run / skipped, and over its in-links: late, lost to the model,
+    """Per agent: rounds run / skipped, and over its in-links: late, stalls, lost to the model,
     lost in transport, the median of the links' p50 ages and the largest p99 (ms)."""
     h = summary.get("health") or {}
     rows = []
@@ -102,10 +104,11 @@ def health_rows(summary: dict[str, Any]) -> list[list[str]]:
         p99 = [c["age_p99_ms"] for c in into if c["age_p99_ms"] is not None]
         lost_t = [c["lost_transport"] for c in into if c["lost_transport"] is not None]
         rows.append([aid, str(a["rounds"]), str(a["skipped"]), str(sum(c["late"] for c in into)),
+                     str(sum(c.get("stalls", 0) for c in into)),
                      str(sum(c["lost_model"] for c in into)), str(sum(lost_t)) if lost_t else "-",
                      f"{float(np.median(p50)):.1f}" if p50 else "-", f"{max(p99):.1f}" if p99 else "-"])
     return rows
 
 
-HEALTH_COLUMNS = ("agent", "rounds run", "skipped", "in: late", "in: lost (model)", "in: lost (transport)",
+HEALTH_COLUMNS = ("agent", "rounds run", "skipped", "in: late", "in: stalls", "in: lost (model)", "in: lost (transport)",
                   "age p50 ms", "age p99 ms")

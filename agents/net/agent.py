@@ -355,6 +355,8 @@ class AgentProcess(RejoinChecks, Role):
                 return
             k, y = taken
             self.health.used(now)
+            for j in self.health.stalled(k, now, lambda j: ("agent", j) in self.alive):
+                log.warning("agent %d: nothing from agent %d for a second though its token is there", self.id, j)
             out = self.node.run_round(k, y)
             self.last = k
             self.rounds_run += 1

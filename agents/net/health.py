@@ -14,6 +14,12 @@ however long the run, percentiles read at a bin's upper edge.
 An estimate stamped ``s`` is meant for the receiver's round ``s + 1``; one that arrives
 after that round has run here is **late** (it can only be taken by a later round).
 
+A **stall**: a live in-neighbour (its token present) from which nothing arrived for
+:data:`STALL_S` seconds and at least :data:`STALL_ROUNDS` rounds (:meth:`LinkHealth.stalled`);
+each silence is counted once and logged, and ends with the next estimate from it. (A
+frozen or cut-off neighbour stalls its links; a transmission queue stuck dropping did,
+before the droppable messages had a priority of their own: docs/networked-runtime.md.)
+
 The monitor joins these figures with the receivers' link counters into ``summary.json``'s
 ``health`` (:func:`agents.health.health_section`).
 """
@@ -21,11 +27,13 @@ The monitor joins these figures with the receivers' link counters into ``summary
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable
 
 import numpy as np
 
 __all__ = ["EDGES", "LinkHealth", "percentile_ms"]
 
+STALL_S, STALL_ROUNDS = 1.0, 10
 EDGES = np.geomspace(1e-4, 100.0, 353)  # seconds: bin b holds ages in [EDGES[b-1], EDGES[b])
 _KEEP = 4096  # the round starts kept (older rounds are dated from the newest)
 
@@ -52,6 +60,9 @@ class LinkHealth:
         self._starts: dict[int, float] = {}
         self._newest = (-1, 0.0)
         self._pending: list[tuple[int, int]] = []
+        self.stalls = dict.fromkeys(in_ids, 0)
+        self._heard: dict[int, tuple[int, float]] = {}  # in-neighbour -> (round, time) last heard or first checked
+        self._silent: set[int] = set()
 
     def measured(self, k: int, t: float) -> None:
         """The plant's measurement of round ``k`` arrived at ``t`` (time.monotonic)."""
@@ -69,6 +80,8 @@ class LinkHealth:
             return
         if last >= stamp + 1:
             self.late[j] += 1
+        self._heard.pop(j, None)
+        self._silent.discard(j)
         if len(self._pending) < 65536:
             self._pending.append((j, stamp))
 
@@ -84,17 +97,33 @@ class LinkHealth:
             self.hist[j][int(np.searchsorted(EDGES, max(now - start, 0.0), side="right"))] += 1
         self._pending.clear()
 
+    def stalled(self, k: int, now: float, live: Callable[[int], bool]) -> list[int]:
+        """The in-neighbours that are ``live`` (their token present) and newly silent at round ``k``: nothing from them for
+        :data:`STALL_S` seconds and :data:`STALL_ROUNDS` rounds (each silence counted once)."""
+        out = []
+        for j in self.hist:
+            if j in self._silent or not live(j):
+                continue
+            since = self._heard.setdefault(j, (k, now))
+            if k - since[0] >= STALL_ROUNDS and now - since[1] >= STALL_S:
+                self._silent.add(j)
+                self.stalls[j] += 1
+                out.append(j)
+        return out
+
     def sent(self, receivers: list[int]) -> None:
         """One estimate went out to each of ``receivers``."""
         self.published.update(receivers)
 
     def ages_rows(self) -> np.ndarray:
-        """Rows ``[sender, age p50 (ms), age p99 (ms), estimates aged, late]`` (-1: none aged; the wire carries no NaN)."""
+        """Rows ``[sender, age p50 (ms), age p99 (ms), estimates aged, late, stalls]`` (-1:
+        none aged; the wire carries no NaN)."""
         rows = []
         for j, h in self.hist.items():
             p50, p99 = percentile_ms(h, 50), percentile_ms(h, 99)
-            rows.append([j, -1.0 if p50 is None else p50, -1.0 if p99 is None else p99, int(h.sum()), self.late[j]])
-        return np.array(rows, dtype=float).reshape(-1, 5)
+            rows.append([j, -1.0 if p50 is None else p50, -1.0 if p99 is None else p99, int(h.sum()), self.late[j],
+                         self.stalls[j]])
+        return np.array(rows, dtype=float).reshape(-1, 6)
 
     def out_rows(self) -> np.ndarray:
         """Rows ``[receiver, estimates published to it]``."""

@@ -255,7 +255,7 @@ class Role(Generic[T]):
         (an agent's :meth:`~agents.net.health.LinkHealth.ages_rows` and ``out_rows``) and
         ``meta`` (counters, memory, CPU)."""
         links = np.zeros((0, 6)) if links is None else links
-        ages, out = health if health is not None else (np.zeros((0, 5)), np.zeros((0, 2)))
+        ages, out = health if health is not None else (np.zeros((0, 6)), np.zeros((0, 2)))
         meta = {"cmd": "stats", **process_figures(), "bridge_dropped": int(self.bus.stats.dropped_full),
                 "batches": self.batches, **meta}
         arrays = {"links": links, "rejected": self.rejects.as_array(), "ages": ages, "out": out}

@@ -45,7 +45,7 @@ class Wire:
         #: round to every out-neighbour, the estimate alone ("est": see :func:`report_to`)
         self.done = Schema({"done": {"x": (n,), "to": (None,), "stamps": (None,)}, "est": {"x": (n,)}})
         self.ctl = Schema({"ctl": {}})
-        self.stats = Schema({"ctl": {"links": (None, 6), "rejected": (None, 3), "ages": (None, 5), "out": (None, 2)}})
+        self.stats = Schema({"ctl": {"links": (None, 6), "rejected": (None, 3), "ages": (None, 6), "out": (None, 2)}})
 
 
 DIAG_PREFIX = "d_"

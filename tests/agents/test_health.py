@@ -44,18 +44,33 @@ def test_percentiles_read_the_histogram_and_an_unused_link_has_none():
     assert percentile_ms(hist, 50) == pytest.approx(1.0, rel=0.05)
     assert percentile_ms(hist, 99) == pytest.approx(500.0, rel=0.05)
     h = LinkHealth([4], period=0.01)
-    assert h.ages_rows().tolist() == [[4.0, -1.0, -1.0, 0.0, 0.0]]  # the wire carries no NaN
+    assert h.ages_rows().tolist() == [[4.0, -1.0, -1.0, 0.0, 0.0, 0.0]]  # the wire carries no NaN
+
+
+def test_a_live_neighbour_silent_for_a_second_and_10_rounds_is_a_stall_counted_once():
+    h = LinkHealth([2, 3], period=0.01)
+    live = {2, 3}.__contains__
+    assert h.stalled(0, 0.0, live) == []
+    assert h.stalled(9, 5.0, live) == []  # 5 s but 9 rounds
+    assert h.stalled(10, 0.5, live) == []  # 10 rounds but half a second
+    assert h.stalled(10, 1.0, live) == [2, 3]
+    assert h.stalled(50, 9.0, live) == []  # the same silence
+    h.arrived(2, 50, last=50)  # agent 2 speaks again: its silence ended
+    assert h.stalled(60, 10.0, live) == [] and h.stalled(70, 11.0, live) == [2]
+    h.arrived(3, 70, last=70)
+    assert h.stalled(100, 20.0, lambda j: j != 3) == []  # agent 3 left: its token is gone
+    assert {int(r[0]): int(r[5]) for r in h.ages_rows()} == {2: 2, 3: 1}
 
 
 def _stats(meta, ages=None, out=None):
-    arrays = {"ages": np.array(ages or [], dtype=float).reshape(-1, 5), "out": np.array(out or [], dtype=float).reshape(-1, 2)}
+    arrays = {"ages": np.array(ages or [], dtype=float).reshape(-1, 6), "out": np.array(out or [], dtype=float).reshape(-1, 2)}
     return SimpleNamespace(meta=meta, arrays=arrays)
 
 
 def test_the_summary_joins_senders_and_receivers_and_says_the_rate_was_not_kept():
     stats = {"plant": _stats({"rounds": 100}),
-             "1": _stats({"rounds": 60, "skipped": 40}, ages=[[2, 12.0, 40.0, 50, 3]], out=[[2, 60]]),
-             "2": _stats({"rounds": 100, "skipped": 0}, ages=[[1, 10.0, 20.0, 55, 0]], out=[[1, 100]])}
+             "1": _stats({"rounds": 60, "skipped": 40}, ages=[[2, 12.0, 40.0, 50, 3, 1]], out=[[2, 60]]),
+             "2": _stats({"rounds": 100, "skipped": 0}, ages=[[1, 10.0, 20.0, 55, 0, 0]], out=[[1, 100]])}
     links = {"2->1": {"sent": 97, "delivered": 60, "dropped": 37, "late": 1, "rejected": 0},
              "1->2": {"sent": 60, "delivered": 40, "dropped": 20, "late": 0, "rejected": 0}}
     h = health_section(stats, [1, 2], links, mode="realtime", rate=100.0, deadline_misses=0)
@@ -63,12 +78,12 @@ def test_the_summary_joins_senders_and_receivers_and_says_the_rate_was_not_kept(
                            "2": {"rounds": 100, "skipped": 0, "skip_fraction": 0.0}}
     assert h["skip_fraction"] == 0.2 and h["kept_rate_hz"] == 80.0 and h["kept"] is False
     assert h["links"]["2->1"] == {"sent": 100, "arrived": 97, "lost_model": 37, "lost_transport": 3, "late": 4,
-                                  "age_p50_ms": 12.0, "age_p99_ms": 40.0}
+                                  "stalls": 1, "age_p50_ms": 12.0, "age_p99_ms": 40.0}
     assert h["links"]["1->2"]["lost_transport"] == 0
     line = rate_line({"health": h})
     assert line == ("the machine did not keep 100 Hz: the agents skipped 20.0% of their rounds "
                     "(most: agent 1, 40%); they kept about 80 Hz")
-    assert health_rows({"health": h})[0] == ["1", "60", "40", "4", "37", "3", "12.0", "40.0"]
+    assert health_rows({"health": h})[0] == ["1", "60", "40", "4", "1", "37", "3", "12.0", "40.0"]
     kept = health_section({k: v for k, v in stats.items() if k != "1"}, [2], links, mode="realtime", rate=100.0,
                           deadline_misses=0)
     assert kept["kept"] is True and rate_line({"health": kept}) is None
