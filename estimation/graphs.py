@@ -84,3 +84,35 @@ def is_strongly_connected(Adj: np.ndarray) -> bool:
 
 def in_neighbours(Adj: np.ndarray, i: int) -> list[int]:
     return [int(j) for j in np.flatnonzero(Adj[i])]
+
+
+#: largest team whose r-robustness is computed by enumeration (3^N subset pairs)
+ROBUSTNESS_MAX_N = 9
+
+
+def r_robustness(Adj: np.ndarray) -> int | None:
+    """The largest ``r`` for which the graph is r-robust (LeBlanc, Zhang, Koutsoukos, Sundaram,
+    IEEE JSAC 2013, Def. 6): every two disjoint nonempty agent sets ``S1``, ``S2`` have one
+    that is r-reachable (an agent of it with at least ``r`` in-neighbours outside it).
+    By enumeration of the ``3^N`` assignments; None above :data:`ROBUSTNESS_MAX_N` agents."""
+    from itertools import product
+
+    A = np.asarray(Adj) != 0
+    N = A.shape[0]
+    if N > ROBUSTNESS_MAX_N:
+        return None
+    if N < 2:
+        return 0
+    best = N
+    for labels in product((0, 1, 2), repeat=N):  # 1: in S1, 2: in S2, 0: in neither
+        lab = np.array(labels)
+        reach = []
+        for s in (1, 2):
+            inside = lab == s
+            if not inside.any():
+                break
+            outside_in = A[inside][:, ~inside].sum(axis=1)  # per agent of S: its in-neighbours outside S
+            reach.append(int(outside_in.max()))
+        else:
+            best = min(best, max(reach))
+    return best

@@ -109,6 +109,10 @@ def conditions(exp: "Experiment") -> list[Condition]:
         except DesignError as exc:
             out.append(Condition("common basis (Assumption 4)", False, str(exc)))
             return out
+    per_agent = des.basis.S.sum(axis=1)
+    out.append(Condition("observability per agent (directions w_l^T x each bank observes)", None,
+                         ", ".join(f"{aid}: {int(o)} of {exp.n}" for aid, o in zip(exp.agent_ids, per_agent))
+                         if exp.N <= 12 else f"{int(per_agent.min())} to {int(per_agent.max())} of {exp.n}"))
     counts = des.basis.S.sum(axis=0)
     per_dir = (f"banks observing each basis direction: {counts.tolist()}" if counts.size <= 24 else
                f"each of the {counts.size} basis directions observed by {int(counts.min())} to {int(counts.max())} banks")
@@ -127,6 +131,10 @@ def conditions(exp: "Experiment") -> list[Condition]:
             detail = ("yes" if stable else "no") + (f"; {detail}" if detail else "")
             out.append(Condition("plant Lyapunov stable (Theorem 3 / eq. 11; not needed by variant "
                                  f"{est.variant!r})", None, detail))
+        r = graphs.r_robustness(Adj)
+        if r is not None:  # the Byzantine-agent condition of the papers' LFRE, not this solver's
+            out.append(Condition("graph r-robustness (information: Byzantine agents need it, "
+                                 "falsified sensors do not)", None, f"{r}-robust"))
         b3 = theorem3_bound(des, Adj, est.gamma)
         if b3 is not None:
             out.append(Condition("Theorem 3 steady-state bound on |x_hat_i - x|", None, f"{b3:.6g}"))

@@ -43,6 +43,10 @@ def test_case118_conditions_rse_check_reports():
     assert found["4-redundant observability, q = 2 (Assumption 2)"].holds
     assert found["common basis (Assumption 4)"].detail == "modal basis; each of the 108 basis directions observed by 6 to 6 banks"
     assert found["each direction observed by >= 2q+1 = 5 agents (Lemma 1)"].holds
+    per_agent = found["observability per agent (directions w_l^T x each bank observes)"].detail
+    assert per_agent == ", ".join(f"{i}: 108 of 108" for i in range(1, 7))
+    robust = next(c for name, c in found.items() if name.startswith("graph r-robustness"))
+    assert robust.detail == "2-robust"  # area 1 (or 3, or 5) has two neighbours
     bound = next(c for name, c in found.items() if name.startswith("Theorem 1 bound"))
     lam2 = float(found["lambda_2(L)"].detail)
     assert float(bound.detail) == pytest.approx(2 * np.sqrt(6) / (5.0 * lam2), rel=1e-5)
