@@ -38,6 +38,7 @@ __all__ = [
     "agent_ids_in",
     "access_control",
     "ROLE_RULES",
+    "OPEN_ESTIMATES",
 ]
 
 CA_FILE = "ca.pem"
@@ -183,7 +184,12 @@ ROLE_RULES: dict[str, list[tuple[tuple[str, ...], str, tuple[str, ...]]]] = {
 }
 
 
-def access_control(agent_ids: Iterable[int], *, run_id: str = "*") -> dict[str, Any]:
+#: a secure peer's ingress of estimates and done reports: from any agent of the team, each
+#: receiver then checking who sealed it (:mod:`transport.linkauth`) and counting what it rejects
+OPEN_ESTIMATES = ("agent/**", "ctl/done/*", "ctl/*/{i}")
+
+
+def access_control(agent_ids: Iterable[int], *, run_id: str = "*", open_estimates: bool = False) -> dict[str, Any]:
     """The router's ``access_control`` section: default deny, and :data:`ROLE_RULES` for
     the identities ``plant``, ``monitor`` and ``agent-{i}`` (``i`` in ``agent_ids``).
 
@@ -193,6 +199,10 @@ def access_control(agent_ids: Iterable[int], *, run_id: str = "*") -> dict[str, 
         The agents that may join.
     run_id : str
         The run the rules are for; ``*`` (default) is any run (one chunk of the key).
+    open_estimates : bool
+        A secure peer's rules: every agent may put estimates and done reports
+        (:data:`OPEN_ESTIMATES`) on whosever keys, for the receiver to authenticate and
+        count (:mod:`transport.linkauth`); the router's rules bind them to the certificate.
 
     Notes
     -----
@@ -212,6 +222,8 @@ def access_control(agent_ids: Iterable[int], *, run_id: str = "*") -> dict[str, 
     def add(identity: str, role: str, i: int | None = None) -> None:
         ids = []
         for n, (messages, flow, keys) in enumerate(ROLE_RULES[role]):
+            if open_estimates and role == "agent" and flow == "ingress" and messages == ("put",):
+                keys = OPEN_ESTIMATES
             rid = f"{identity}-{n}"
             ids.append(rid)
             rules.append({"id": rid, "permission": "allow", "flows": [flow], "messages": list(messages),

@@ -51,6 +51,7 @@ from collections.abc import Callable
 from typing import Any
 
 from transport.bridge import BridgeStats, liveliness_to_item, make_bridge
+from transport.linkauth import sealed
 
 __all__ = ["Bus", "Polled", "ZenohBus", "InMemoryHub", "InMemoryBus", "key_matches"]
 
@@ -104,6 +105,9 @@ class Bus:
     """The interface (see the module docstring); both implementations subclass it."""
 
     stats: BridgeStats
+    #: a secure team's pairwise keys (:class:`transport.linkauth.LinkAuth`): what this bus
+    #: publishes on an estimate key is sealed, what its roles hear there is checked
+    auth: Any = None
 
     def publish(self, key: str, payload: bytes, *, droppable: bool = False) -> None:  # pragma: no cover - interface
         raise NotImplementedError
@@ -173,6 +177,8 @@ class ZenohBus(Bus):
     def publish(self, key: str, payload: bytes, *, droppable: bool = False) -> None:
         if self._closed:
             return
+        if self.auth is not None and sealed(key):
+            payload = self.auth.seal(key, payload)
         pub = self._publishers.get((key, droppable))
         if pub is None:
             z = self._zenoh
@@ -355,6 +361,8 @@ class InMemoryBus(Bus):
     def publish(self, key: str, payload: bytes, *, droppable: bool = False) -> None:
         if self._closed:
             return
+        if self.auth is not None and sealed(key):
+            payload = self.auth.seal(key, payload)
         self.hub.published += 1
         data = bytes(payload)
         for queue, owner in self.hub.routes(key):

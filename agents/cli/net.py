@@ -80,7 +80,9 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
         console.print(expectations_table(results))
     rej = summary.get("rejected") or {}
     if rej:
-        console.print("rejected messages: " + ", ".join(f"{who}: {rec.get('total', 0)}" for who, rec in rej.items()))
+        console.print("rejected messages (sender: total, by reason): " + "; ".join(
+            f"{who}: {rec.get('total', 0)} (" + ", ".join(f"{r} {n}" for r, n in rec.items() if r != "total") + ")"
+            for who, rec in rej.items()))
     health = health_table(summary) if (summary.get("health") or {}).get("mode") == "realtime" else None
     if health is not None:
         console.print(health)

@@ -120,6 +120,7 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
     bus = None
     try:
         bus = ZenohBus(session, loop, opener=lambda: _open(spec.session))
+        bus.auth = _link_auth(spec.session.tls, exp)
         keys = Keys(spec.run_id)
         if spec.role == "plant":
             from .plant import run_plant
@@ -135,6 +136,16 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
             bus.close()
             session = bus.session  # a new one after bus.reconnect()
         close_session(session)
+
+
+def _link_auth(tls: Any, exp: Any) -> Any:
+    """A secure process's pairwise message keys (:mod:`transport.linkauth`), else None."""
+    if tls is None:
+        return None
+    from transport.linkauth import load_link_auth, team_identities
+
+    team = exp[0] if isinstance(exp, list) else exp
+    return load_link_auth(tls.directory, tls.identity, team_identities(team.agent_ids))
 
 
 def _stop_on_signals(loop: Any, watch_parent: bool) -> Any:

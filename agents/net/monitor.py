@@ -435,12 +435,12 @@ class MonitorProcess(Role):
             self.dashboard.flush()
         regular = regular_mask(exp)
         rejected: dict[str, dict[str, int]] = {}
-        processes: dict[str, Any] = {"monitor": {**process_figures(), "batches": self.batches}}
-        Rejects.merge(rejected, self.rejects.as_array())
+        processes: dict[str, Any] = {"monitor": {**process_figures(), "batches": self.batches,
+                                                 "rejected": _rejected(rejected, self.rejects.as_array())}}
         perf: dict[str, Any] = {}
         for who, m in sorted(self.stats.items()):
-            Rejects.merge(rejected, m.arrays["rejected"])
-            processes[who if who == "plant" else f"agent {who}"] = {k: v for k, v in m.meta.items() if k != "cmd"}
+            processes[who if who == "plant" else f"agent {who}"] = {**{k: v for k, v in m.meta.items() if k != "cmd"},
+                                                                    "rejected": _rejected(rejected, m.arrays["rejected"])}
             if who == "plant":
                 perf = {"elapsed_s": m.meta.get("elapsed"), "rounds": m.meta.get("rounds"),
                         "deadline_misses": m.meta.get("missed"), "round0_at": m.meta.get("round0_at")}
@@ -493,3 +493,11 @@ async def run_monitor(exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig, *, 
     whose earlier monitor left (see :class:`MonitorProcess`)."""
     return await MonitorProcess(exp, bus, keys, cfg, out_dir=out_dir, progress=progress, dashboard=dashboard,
                                 resume=resume).run()
+
+
+def _rejected(team: dict[str, dict[str, int]], rows: Any) -> dict[str, dict[str, int]]:
+    """One receiver's rejected messages per sender and reason, merged into the team's too."""
+    mine: dict[str, dict[str, int]] = {}
+    Rejects.merge(mine, rows)
+    Rejects.merge(team, rows)
+    return mine

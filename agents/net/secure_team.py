@@ -44,7 +44,9 @@ def peer_acl(directory: Path | str, run_id: str = "*", agent_ids: Any = None) ->
     the team (``plant``, ``monitor``, ``agent-i`` for ``i`` in ``agent_ids``, default: the
     ``agent-i.pem`` certificates in ``directory``) what this peer accepts from it (ingress)
     and sends to it (egress). Zenoh enforces it on this peer's own links, matching the
-    certificate's common name of the peer at the other end (eclipse-zenoh/zenoh#2137)."""
+    certificate's common name of the peer at the other end (eclipse-zenoh/zenoh#2137).
+    Estimates and done reports are accepted from every agent of the team and authenticated
+    by the receiver (:mod:`transport.linkauth`), which counts what it rejects."""
     from transport.secure import access_control, agent_ids_in
 
     ids = list(agent_ids) if agent_ids is not None else agent_ids_in(directory)
@@ -52,6 +54,6 @@ def peer_acl(directory: Path | str, run_id: str = "*", agent_ids: Any = None) ->
         raise ScenarioError(f"--secure {directory}: no agent-I.pem certificates there (write them with "
                             f"`rse certs {directory} --scenario SCENARIO`)")
     try:
-        return access_control(ids, run_id=run_id)
+        return access_control(ids, run_id=run_id, open_estimates=True)
     except ValueError as exc:
         raise ScenarioError(f"--run-id: {exc}") from None

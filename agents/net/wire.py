@@ -21,7 +21,7 @@ __all__ = ["Wire", "Rejects", "REASONS", "UNKNOWN", "who_name", "diagnostics_met
 
 UNKNOWN = MIN_ID  # sender code of a message whose key names no sender
 REASONS = ("size", "decode", "type", "keys", "version", "sender", "shape", "nonfinite", "key", "range", "neighbour",
-           "invalid")
+           "invalid", "impersonation", "unauthenticated")  # the last two: transport.linkauth
 
 
 def who_name(sender: int | None) -> str:

@@ -13,6 +13,7 @@ import os
 import signal
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -144,19 +145,25 @@ def test_without_a_certificate_no_message_is_exchanged(certs, tmp_path):
 
 
 class Insider:
-    """A peer with agent 4's certificate that republishes every message of agent 3 it hears
-    (estimates, and the done reports that carry them in lockstep) on agent 3's own keys, each
-    value shifted by +5: well-formed messages agent 3 never sent."""
+    """A peer with agent 4's certificate (and so agent 4's pairwise keys) that republishes
+    every message of agent 3 it hears (estimates, and the done reports that carry them in
+    lockstep) on agent 3's own keys, each value shifted by +5: well-formed messages agent 3
+    never sent. Every other one is sealed with agent 4's own keys (an agent speaking for
+    another), the others keep agent 3's tags (a copy of its seal over other values)."""
 
     def __init__(self, certs: Path, team: dict) -> None:
         from agents.net.secure_team import peer_acl
+        from transport.linkauth import load_link_auth, team_identities
         from transport.secure import tls_files
         from transport.zenoh_session import SessionOptions, free_tcp_port, open_session, tcp_endpoint
 
         run = team["run_id"]
         self.sent = self.failed = 0
+        self.by_key: Counter[str] = Counter()
         self.lock = threading.Lock()
-        eps = tuple(v for k, v in team["endpoints"].items() if k != "agent 4")
+        eps = tuple(team["endpoints"].values())
+        self.members, self.armed_at = len(eps), None
+        self.auth = load_link_auth(certs, "agent-4", team_identities(range(1, 6)))
         self.s = open_session(SessionOptions(mode="peer", listen=(tcp_endpoint(free_tcp_port()),), connect=eps,
                                              gossip=False, retry_ms=50, tls=tls_files(certs, "agent-4"),
                                              acl=peer_acl(certs, run)))
@@ -167,18 +174,34 @@ class Insider:
 
     def forge(self, sample) -> None:
         from transport.codec import decode, encode_fields
+        from transport.linkauth import MAGIC, TAG
 
-        data = sample.payload.to_bytes()
+        if not self.armed():
+            return
+        data, key = sample.payload.to_bytes(), str(sample.key_expr)
         try:
+            assert data.endswith(MAGIC)  # agent 3's seal: 7 tags (plant, monitor, agents 1-5), count, magic
+            trailer = data[-(7 * TAG + 2 + len(MAGIC)):]
+            data = data[: -len(trailer)]
             m = decode(data, schema={"est": {"x": (None,)}, "done": {"x": (None,), "to": (None,), "stamps": (None,)}})
             arrays = {**m.arrays, "x": np.asarray(m.arrays["x"]) + 5.0}
             forged = encode_fields(m.kind, m.sender, m.stamp, arrays, receiver=m.receiver, meta=dict(m.meta) or None)
-            self.s.put(str(sample.key_expr), forged)
+            forged = self.auth.seal(key, forged) if self.sent % 2 == 0 else forged + trailer
+            self.s.put(key, forged)
             with self.lock:
                 self.sent += 1
+                self.by_key[key.split("/", 2)[2]] += 1
         except Exception:
             with self.lock:
                 self.failed += 1
+
+    def armed(self) -> bool:
+        """Forge from 0.5 s after a link to every member is up (the members' subscriptions
+        have reached the insider by then: each forgery goes to each of its receivers)."""
+        now = time.monotonic()
+        if self.armed_at is None and len(list(self.s.info.peers_zid())) >= self.members:
+            self.armed_at = now
+        return self.armed_at is not None and now - self.armed_at >= 0.5
 
     def close(self) -> None:
         from transport.zenoh_session import close_session
@@ -189,8 +212,8 @@ class Insider:
 def test_an_insider_cannot_speak_for_another_agent(certs, tmp_path):
     """lee_kim_shim.toml in lockstep over secure peers while an insider holding agent 4's
     certificate republishes agent 3's messages on agent 3's keys shifted by +5: every
-    receiver drops them on its ingress (agent 3's keys are bound to agent-3's certificate),
-    so both bounds hold and every estimate equals rse simulate's."""
+    receiver rejects them (agent 3's messages carry tags only agent 3 can make) and counts
+    each with its reason, so both bounds hold and every estimate equals rse simulate's."""
     from agents.api import load_experiment
     from agents.simulate import simulate
 
@@ -204,18 +227,33 @@ def test_an_insider_cannot_speak_for_another_agent(certs, tmp_path):
         assert until(lambda: (out / "team.json").is_file(), WAIT_S), p.poll() is None or p.communicate()
         time.sleep(0.2)
         insider = Insider(certs, json.loads((out / "team.json").read_text()))
-        _so, se = p.communicate(timeout=600)
+        so, se = p.communicate(timeout=600)
     finally:
         if insider is not None:
             insider.close()
         ps.kill_all()
     assert insider is not None
-    print(f"\ninsider (agent 4's certificate): {insider.sent} well-formed messages on agent 3's keys, "
-          f"{insider.failed} not forged")
     assert p.returncode == 0 and "Traceback" not in se, se  # 3: a bound failed
     assert insider.sent > 1000 and insider.failed == 0
     summary = json.loads((out / "summary.json").read_text())
     assert [e["ok"] for e in summary["expectations"]] == [True, True], summary["expectations"]
+    rejected = summary["rejected"]
+    print(f"\ninsider (agent 4's certificate): {insider.sent} well-formed messages on agent 3's keys "
+          f"({dict(insider.by_key)}); "
+          f"rejected: {rejected}; by receiver: "
+          f"{ {who: p['rejected'] for who, p in summary['processes'].items() if p['rejected']} }")
+    # in lockstep agent 3's estimate travels in its done report: every forgery goes to the
+    # plant, the monitor and agents 2 and 4 (agent 3's neighbours), and each counts every one
+    # with its reason (the last one or two may come after a receiver has stopped)
+    assert set(rejected) == {"3"} and set(insider.by_key) == {"ctl/done/3"}, (rejected, insider.by_key)
+    for who in ("plant", "monitor", "agent 2", "agent 4"):
+        mine = summary["processes"][who]["rejected"]
+        assert set(mine) == {"3"} and set(mine["3"]) == {"total", "impersonation", "unauthenticated"}, (who, mine)
+        assert insider.sent - 2 <= mine["3"]["total"] <= insider.sent, (who, mine, insider.sent)
+        assert abs(mine["3"]["impersonation"] - mine["3"]["unauthenticated"]) <= 2, (who, mine)
+    assert rejected["3"]["total"] == sum(p["rejected"].get("3", {}).get("total", 0)
+                                         for p in summary["processes"].values())
+    assert "3: " in so and "impersonation" in so, so
     exp, _ = load_experiment(LKS, ov, None)
     ref = simulate(exp, keep_trajectories=True)
     # the bound of every lockstep equality test of lee_kim_shim (tests/agents/test_run_processes.py:
