@@ -120,7 +120,7 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
     bus = None
     try:
         bus = ZenohBus(session, loop, opener=lambda: _open(spec.session))
-        bus.auth = _link_auth(spec.session.tls, exp)
+        bus.auth = _link_auth(spec.session, exp)
         keys = Keys(spec.run_id)
         if spec.role == "plant":
             from .plant import run_plant
@@ -138,14 +138,19 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
         close_session(session)
 
 
-def _link_auth(tls: Any, exp: Any) -> Any:
-    """A secure process's pairwise message keys (:mod:`transport.linkauth`), else None."""
-    if tls is None:
+def _link_auth(opts: Any, exp: Any) -> Any:
+    """A secure peer's pairwise message keys (:mod:`transport.linkauth`), else None (a
+    router team's router binds the estimate keys to the certificates)."""
+    tls = opts.tls
+    if tls is None or opts.acl is None:
         return None
     from transport.linkauth import load_link_auth, team_identities
 
     team = exp[0] if isinstance(exp, list) else exp
-    return load_link_auth(tls.directory, tls.identity, team_identities(team.agent_ids))
+    try:
+        return load_link_auth(tls.directory, tls.identity, team_identities(team.agent_ids))
+    except ValueError as exc:
+        raise ScenarioError(str(exc)) from None
 
 
 def _stop_on_signals(loop: Any, watch_parent: bool) -> Any:

@@ -6,7 +6,7 @@ import pytest
 
 pytest.importorskip("cryptography", reason="a secure team needs the cryptography package (pip install '.[secure]')")
 
-from transport.linkauth import load_link_auth, sealed, team_identities  # noqa: E402
+from transport.linkauth import load_link_auth, sealed, team_identities
 
 KEY = "rse/r1/ctl/done/3"
 
