@@ -64,7 +64,8 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
              progress: bool = False, save_estimates: bool = False, agents_per_process: int = 1,
              dashboard: Any = None, on_urls: Callable[[dict[str, str]], None] | None = None,
              while_serving: Callable[[dict[str, Any] | None], None] | None = None,
-             say: Callable[[str], None] | None = None, deliveries: bool = True) -> RunResult:
+             say: Callable[[str], None] | None = None, deliveries: bool = True,
+             sign: str | Path | None = None) -> RunResult:
     """Run ``exp`` as a team of processes over Zenoh on this machine (``rse run`` is a shell
     over this function): plant, monitor and one process per agent (``agents_per_process``:
     that many agents share a process). Lockstep results equal :func:`simulate`'s.
@@ -76,6 +77,8 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
     ``while_serving(summary)`` after the run while a served viewer is still up, ``say(line)``
     for the launcher's one-line notes (default: silent). ``deliveries``: every agent records
     what it held at each step (``rse replay``; off only to measure what the record costs).
+    ``sign``: a directory of ``rse certs`` signing keys: every estimate is signed and an
+    equivocating agent is convicted (``summary["evidence"]``, ``RUN_DIR/evidence.jsonl``).
 
     Returns when the team has finished (``result.leaves`` lists the members that left
     during the run); raises :class:`~estimation.errors.RSEError` naming the failed process
@@ -90,7 +93,8 @@ def run_team(exp: Experiment, *, out: str | Path | None = None, mode: str = "loc
 
     try:
         cfg = RunConfig(mode=mode, rate=rate, deadline=deadline, startup_timeout=startup_timeout,
-                        save_estimates=save_estimates, warmup=warmup, deliveries=deliveries)
+                        save_estimates=save_estimates, warmup=warmup, deliveries=deliveries,
+                        sign=None if sign is None else str(Path(sign).resolve()))
     except ValueError as exc:
         raise ScenarioError(str(exc)) from None
     run_dir = Path(out) if out is not None else default_run_dir(exp.scenario.run.name)

@@ -184,8 +184,8 @@ def verify_record(rec: Any, public_keys: dict[str, Any]) -> str | None:
             return "expected two messages"
         if rec.get("identity") != f"agent-{j}":
             return f"identity {rec.get('identity')!r} is not the sender's (agent-{j})"
-        if int(rec["convicted_at"]) <= stamp:
-            return f"convicted at round {rec['convicted_at']}, not after the stamp {stamp}"
+        if int(rec["convicted_at"]) < stamp:
+            return f"convicted at round {rec['convicted_at']}, before the stamp {stamp}"
         told = [int(r) for r in rec["told"]]
         if len(told) != 2 or any(m["receiver"] is not None and int(m["receiver"]) != r for m, r in zip(msgs, told)):
             return "the receivers named do not match the messages"

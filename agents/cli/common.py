@@ -154,3 +154,32 @@ def secure_files(directory: Path, identity: str):
         return tls_files(directory, identity)
     except ValueError as exc:
         raise ScenarioError(str(exc)) from None
+
+
+def warn_plain(endpoints: Any, secure: Any) -> None:
+    """One line on stderr when a plain (not ``--secure``) process uses an endpoint off this
+    host: plain mode authenticates nobody."""
+    from transport.zenoh_session import is_loopback
+
+    if secure is not None:
+        return
+    remote = [e for e in endpoints if e and not is_loopback(e)]
+    if remote:
+        from ..console import err
+
+        err.print(f"warning: plain mode authenticates nobody: whoever reaches {remote[0]} can join and speak for "
+                  "any process (--secure DIR: see docs/deployment.md)", soft_wrap=True)
+
+
+def sign_dir(directory: Path | None) -> str | None:
+    """``--sign DIR``: the directory of the team's signing keys, checked to hold some
+    (``*.sig.pub``; each agent then loads its own key); None without the flag."""
+    if directory is None:
+        return None
+    from transport.signing import load_public_keys
+
+    try:
+        load_public_keys(directory)
+    except (ValueError, ImportError) as exc:
+        raise ScenarioError(f"--sign: {exc}") from None
+    return str(Path(directory).resolve())

@@ -26,8 +26,10 @@ from .common import (
     rerun_options,
     scenario_options,
     secure_files,
+    sign_dir,
     sigterm_interrupts,
     wait_while_serving,
+    warn_plain,
     warn_threat_model,
 )
 
@@ -66,7 +68,7 @@ def _endpoints(connect: tuple[str, ...]) -> tuple[str, ...]:
         raise ScenarioError(f"--connect: {exc}") from None
 
 
-def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
+def _print_outcome(summary: dict[str, Any] | None, title: str, run_dir: Path | None = None) -> None:
     from ..console import expectations_table, health_table, summary_table
     from ..console import out as console
     from ..health import rate_line
@@ -78,6 +80,10 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
     results = [ExpectationResult.from_dict(e) for e in summary.get("expectations", [])]
     if results:
         console.print(expectations_table(results))
+    if "evidence" in summary:
+        from .sim import convicted_line
+
+        console.print(convicted_line(summary["evidence"], run_dir or Path("RUN_DIR")), soft_wrap=True)
     rej = summary.get("rejected") or {}
     if rej:
         console.print("rejected messages (sender: total, by reason): " + "; ".join(
@@ -109,6 +115,8 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
 @click.option("--secure", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
               help="Mutual TLS on every link, certificates from `rse certs DIR`; every peer enforces its own "
                    "ingress rules (with --router or --connect: the router does).")
+@click.option("--sign", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
+              help="Sign every estimate with the keys of `rse certs DIR`; equivocation becomes evidence (evidence.jsonl).")
 @click.option("--run-id", default=None, help="Run id in every key expression (default: NAME-RANDOM).")
 @click.option("--agents-per-process", type=click.IntRange(min=1), default=1, show_default=True, metavar="N",
               help="Host N agents in each agent process (one Zenoh session, one task per agent): large teams.")
@@ -118,8 +126,8 @@ def _print_outcome(summary: dict[str, Any] | None, title: str) -> None:
 @handle_errors
 def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path | None, mode: str, rate: float | None,
         deadline: float, startup_timeout: float, warmup: float, connect: tuple[str, ...], with_router: bool,
-        secure: Path | None, run_id: str | None, agents_per_process: int, save_estimates: bool, progress: bool,
-        rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
+        secure: Path | None, sign: Path | None, run_id: str | None, agents_per_process: int, save_estimates: bool,
+        progress: bool, rrd: Path | None, no_rerun: bool, viewer: bool, serve_web: bool,
         web_port: int | None, grpc_port: int | None) -> None:
     """Run SCENARIO as a team of processes over Zenoh: plant, monitor, one process per agent.
 
@@ -139,6 +147,7 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
     _config(mode, rate, deadline, startup_timeout, save_estimates, warmup)  # bad values before the experiment is built
     eps = _endpoints(connect)
     warn_plain(eps, secure)
+    signing = sign_dir(sign)
     if with_router and eps:
         raise ScenarioError("--router starts a router for the team; --connect names one already running: give one of them")
     if run_id is not None:
@@ -170,7 +179,7 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
         # the run is over, the monitor still serves the recording: report now, then wait
         if summary is not None:
             try:
-                _print_outcome(summary, title(summary))
+                _print_outcome(summary, title(summary), run_dir)
             except ExpectationFailed as exc:
                 served["failed"] = exc
             served["printed"] = True
@@ -178,7 +187,7 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
         wait_while_serving(served.get("urls", {}).get("web", ""))
 
     res = api.run_team(exp, out=run_dir, mode=mode, rate=rate, deadline=deadline, startup_timeout=startup_timeout,
-                       warmup=warmup, router=with_router, connect=eps, secure=secure, run_id=run_id, progress=progress,
+                       warmup=warmup, router=with_router, connect=eps, secure=secure, run_id=run_id, progress=progress, sign=signing,
                        save_estimates=save_estimates, agents_per_process=agents_per_process, dashboard=dopts,
                        on_urls=show_urls, while_serving=while_serving, say=lambda m: err.print(m, soft_wrap=True))
     for leave in res.leaves:
@@ -187,7 +196,7 @@ def run(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: Path 
         if "failed" in served:
             raise served["failed"]
         return
-    _print_outcome(res.summary(), title(res.summary()))
+    _print_outcome(res.summary(), title(res.summary()), run_dir)
     console.print(f"run directory: {run_dir}")
 
 
@@ -316,21 +325,6 @@ def _peer_options(listen: str, connect: tuple[str, ...], tls: Any, run_id: str) 
         return SessionOptions(mode="peer", listen=(listen,), connect=connect, tls=tls, acl=acl)
     except ValueError as exc:
         raise ScenarioError(f"--connect/--listen: {exc}") from None
-
-
-def warn_plain(endpoints: Any, secure: Any) -> None:
-    """One line on stderr when a plain (not ``--secure``) process uses an endpoint off this
-    host: plain mode authenticates nobody."""
-    from transport.zenoh_session import is_loopback
-
-    if secure is not None:
-        return
-    remote = [e for e in endpoints if e and not is_loopback(e)]
-    if remote:
-        from ..console import err
-
-        err.print(f"warning: plain mode authenticates nobody: whoever reaches {remote[0]} can join and speak for "
-                  "any process (--secure DIR: see docs/deployment.md)", soft_wrap=True)
 
 
 def _client_options(eps: tuple[str, ...], tls: Any) -> Any:

@@ -21,6 +21,8 @@ from transport.zenoh_bus import Bus
 
 from .config import LAZY, RunConfig
 from .health import LinkHealth
+from .evidence_net import signing_for
+from .evidence_net import unsigned as _unsigned
 from .protocol import Role
 from .rejoin import RejoinChecks
 from .schedule import schedule_for
@@ -96,6 +98,7 @@ class AgentProcess(RejoinChecks, Role):
             node.view = self.view
             self._done_schema = self.wire.done
         self.health = LinkHealth(list(self.in_ids), 1.0 / cfg.rate if cfg.rate else part.dt)
+        self.signing = signing_for(part, cfg, keys.run, regular=node.strategy is None)  # rse run --sign
 
     def on_reject(self, sender: int | None) -> None:
         if sender is not None:
@@ -164,7 +167,7 @@ class AgentProcess(RejoinChecks, Role):
         if j not in self.node.links:
             self.rejects.add(j, "neighbour")
             return
-        self._take(j, m.stamp, m.arrays["x"])
+        self._take(j, m.stamp, m.arrays["x"], m)
 
     def _merged_done(self, key: str, payload: bytes) -> tuple[int, int, np.ndarray, list[int] | None] | None:
         """The done report of an in-neighbour whose report carries its estimate (see
@@ -182,7 +185,7 @@ class AgentProcess(RejoinChecks, Role):
             return None
         if m.kind == "est":
             if j in self.node.links:  # an in-neighbour: this agent is one of its receivers
-                self._take(j, m.stamp, m.arrays["x"])
+                self._take(j, m.stamp, m.arrays["x"], m)
             return j, m.stamp, m.arrays["x"], None
         got_to = receivers_of(m, self.part.N)
         if got_to is None:
@@ -196,11 +199,13 @@ class AgentProcess(RejoinChecks, Role):
                 self._take(j, stamps[receivers.index(self.id)], m.arrays["x"])
         return j, m.stamp, m.arrays["x"], receivers
 
-    def _take(self, j: int, stamp: int, x: np.ndarray) -> None:
+    def _take(self, j: int, stamp: int, x: np.ndarray, m: Any = None) -> None:
         """Hand a decoded estimate of in-neighbour ``j`` to the node (its channel decides)
-        and note its arrival for the lockstep wait lists."""
+        and note its arrival for the lockstep wait lists (and its signed copy, ``m``)."""
         self.node.receive(j, stamp, x)
         self.health.arrived(j, stamp, self.last)
+        if self.signing is not None and m is not None:
+            self.signing.note(j, m)
         if stamp >= self.last - 2 and len(self.arrived) < 4096:
             self.arrived.setdefault(stamp, set()).add(j)
 
@@ -303,13 +308,16 @@ class AgentProcess(RejoinChecks, Role):
         msg = node.publish(k, out) if node.strategy is not None else out
         aid = self.id
         drop = self.schedule.droppable
+        sig = self.signing.meta if self.signing is not None else _unsigned
+        if self.signing is not None:
+            self.signing.report(bus, self.keys, k)
         try:
             if k < self.silent_until:  # warming up after a late join: listen only
                 to, stamps = [], []
             elif isinstance(msg, dict):
                 to, stamps = [], []
                 for tgt, stamp, value in addressed(msg, k, self.out_ids):
-                    bus.publish(self.keys.est(aid, tgt), _msg("est", aid, stamp, {"x": value}, receiver=tgt),
+                    bus.publish(self.keys.est(aid, tgt), _msg("est", aid, stamp, {"x": value}, receiver=tgt, meta=sig(tgt, stamp, value)),
                                 droppable=drop)
                     to.append(tgt)
                     stamps.append(stamp)
@@ -319,7 +327,7 @@ class AgentProcess(RejoinChecks, Role):
                 if not finite:
                     log.warning("agent %d: round %d message not sent: a non-finite estimate", aid, k)
             else:
-                bus.publish(self._est_key, _msg("est", aid, k, {"x": msg}), droppable=drop)
+                bus.publish(self._est_key, _msg("est", aid, k, {"x": msg}, meta=sig(None, k, msg)), droppable=drop)
                 to, stamps = self.out_ids, [k] * len(self.out_ids)
         except MessageError as exc:  # a non-finite estimate cannot go on the wire
             log.warning("agent %d: round %d message not sent: %s", aid, k, exc)
@@ -331,6 +339,7 @@ class AgentProcess(RejoinChecks, Role):
         if self._diagnostics:
             meta.update(diagnostics_meta(node.estimator))
         if self._merge and to:  # a broadcast report: the estimate, to every out-neighbour stamped k
+            meta.update(sig(None, k, own) or {})
             bus.publish(self._done_key, _msg("est", aid, k, {"x": own}, meta=meta or None))
             return
         arrays = {"x": own, "to": np.array(to, dtype=float), "stamps": np.array(stamps, dtype=float)}

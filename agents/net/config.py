@@ -39,6 +39,8 @@ class RunConfig:
         neighbours); the monitor records it from its first round
     deliveries : each agent process writes the delivery record (:mod:`agents.deliveries`)
         into the run directory (off: benchmarks measuring its cost)
+    sign : the directory of the team's signing keys (``rse certs``): every estimate is
+        signed and equivocation becomes evidence (:mod:`agents.net.evidence_net`); None: off
     """
 
     mode: str = "lockstep"
@@ -49,6 +51,7 @@ class RunConfig:
     linger: float = 2.0
     warmup: float = 3.0
     deliveries: bool = True
+    sign: str | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

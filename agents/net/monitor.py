@@ -20,6 +20,7 @@ from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
 from .config import ACK_EVERY, MONITOR_LAG, RECONNECTS, TOKENS_SETTLE_S, UNHEARD_S, RunConfig
+from .evidence_net import TOLD, convictions_for
 from .figures import process_figures
 from .protocol import Role
 from .wire import Rejects, _msg, diagnostics_from_meta, out_ids_of, report_to, who_name
@@ -78,6 +79,7 @@ class MonitorProcess(Role):
         self.stop_round: int | None = None
         self.stats: dict[str, Message] = {}
         self.membership: list[dict[str, Any]] = []
+        self.convictions = convictions_for(exp, cfg, keys.run)  # rse run --sign
         self.index = {aid: i for i, aid in enumerate(exp.agent_ids)}
         self._outs = out_ids_of(exp)  # a broadcast report's receivers (report_to)
         # a monitor that starts with the team expects every agent until it has seen each
@@ -220,6 +222,10 @@ class MonitorProcess(Role):
             got = self.decode(key, payload, self.wire.stats)
             if got is not None:
                 self.stats[who_name(got[0].sender)] = got[1]
+        elif "/ctl/told/" in key and self.convictions is not None:
+            got = self.decode(key, payload, self.convictions.schema)
+            if got is not None and got[0].sender is not None:
+                self.convictions.add(got[0].sender, got[1])
         elif "/ctl/stop/" in key:
             got = self.decode(key, payload, self.wire.ctl)
             if got is not None and got[0].sender == PLANT_ID:
@@ -344,6 +350,8 @@ class MonitorProcess(Role):
         self.subscribe(keys.ctl_pattern("done"), polled=polled, capacity=self.RING)
         bus.subscribe(keys.ctl_pattern("stats"), self.queue)
         bus.subscribe(keys.ctl_pattern("stop"), self.queue)
+        if self.convictions is not None:
+            self.subscribe(keys.ctl_pattern(TOLD), polled=polled, capacity=self.RING)
         bus.watch(keys.alive_pattern(), self.queue)
         bus.announce(keys.alive("monitor", 0))
         consumer = asyncio.ensure_future(self.consume())
@@ -460,6 +468,10 @@ class MonitorProcess(Role):
                                            rate=self.cfg.rate, deadline_misses=perf.get("deadline_misses"))
         if self.dashboard is not None and hasattr(self.dashboard, "log_health"):
             self.dashboard.log_health(summary["health"], mon.last_round, rate_line(summary))
+        if self.convictions is not None:
+            summary["evidence"] = self.convictions.summary()
+            if self.out_dir is not None:
+                self.convictions.write(self.out_dir)
         if self.out_dir is not None:
             from agents.recorder import write_run
 
