@@ -71,8 +71,9 @@ class LinkAuth:
         if me not in order:
             raise ValueError(f"identity {me!r} is not one of the team's ({', '.join(order)})")
         self.me, self.order = me, list(order)
-        self._keys = [keys[x] for x in self.order]
-        self._by_name = dict(keys)
+        # keyed BLAKE2b states prepared once: a tag is a copy, an update and a digest
+        self._keys = [hashlib.blake2b(key=keys[x], digest_size=TAG) for x in self.order]
+        self._by_name = {x: hashlib.blake2b(key=k, digest_size=TAG) for x, k in keys.items()}
         self._mine = self.order.index(me)
         self._suffix = _TRAILER.pack(len(self.order)) + MAGIC
         self.sealed = self.opened = 0
@@ -82,8 +83,10 @@ class LinkAuth:
         return hashlib.blake2b(key.encode() + b"\0" + inner, digest_size=32).digest()
 
     @staticmethod
-    def _tag(k: bytes, h: bytes) -> bytes:
-        return hashlib.blake2b(h, key=k, digest_size=TAG).digest()
+    def _tag(k: Any, h: bytes) -> bytes:
+        c = k.copy()
+        c.update(h)
+        return bytes(c.digest())
 
     def seal(self, key: str, inner: bytes) -> bytes:
         """``inner`` with one tag per team identity (see the module docstring)."""
