@@ -76,7 +76,7 @@ class Signing:
 
     def note(self, j: int, m: Message) -> None:
         """A regular agent took ``m`` from in-neighbour ``j``: keep its signed copy."""
-        sig = m.meta.get("sig")
+        sig = (m.meta or {}).get("sig")
         if (not self.regular or not isinstance(sig, str) or len(sig) != 128 or len(self.copies) >= MAX_COPIES
                 or m.arrays["x"].ndim != 1):  # the estimates of every scenario are vectors
             return
@@ -157,6 +157,12 @@ class Convictions:
         path = Path(run_dir) / EVIDENCE_FILE
         path.write_text("".join(json.dumps(r) + "\n" for r in self.records))
         return path
+
+    def report(self, summary: dict[str, Any], run_dir: Path | None) -> None:
+        """Into ``summary`` (``evidence``: :meth:`summary`) and ``run_dir/evidence.jsonl``."""
+        summary["evidence"] = self.summary()
+        if run_dir is not None:
+            self.write(run_dir)
 
     def summary(self) -> dict[str, Any]:
         """``summary.json``'s ``evidence`` (as the simulator's, plus the copies compared)."""

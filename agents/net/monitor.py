@@ -444,11 +444,11 @@ class MonitorProcess(Role):
         regular = regular_mask(exp)
         rejected: dict[str, dict[str, int]] = {}
         processes: dict[str, Any] = {"monitor": {**process_figures(), "batches": self.batches,
-                                                 "rejected": _rejected(rejected, self.rejects.as_array())}}
+                                                 "rejected": Rejects.mine(rejected, self.rejects.as_array())}}
         perf: dict[str, Any] = {}
         for who, m in sorted(self.stats.items()):
             processes[who if who == "plant" else f"agent {who}"] = {**{k: v for k, v in m.meta.items() if k != "cmd"},
-                                                                    "rejected": _rejected(rejected, m.arrays["rejected"])}
+                                                                    "rejected": Rejects.mine(rejected, m.arrays["rejected"])}
             if who == "plant":
                 perf = {"elapsed_s": m.meta.get("elapsed"), "rounds": m.meta.get("rounds"),
                         "deadline_misses": m.meta.get("missed"), "round0_at": m.meta.get("round0_at")}
@@ -469,9 +469,7 @@ class MonitorProcess(Role):
         if self.dashboard is not None and hasattr(self.dashboard, "log_health"):
             self.dashboard.log_health(summary["health"], mon.last_round, rate_line(summary))
         if self.convictions is not None:
-            summary["evidence"] = self.convictions.summary()
-            if self.out_dir is not None:
-                self.convictions.write(self.out_dir)
+            self.convictions.report(summary, self.out_dir)
         if self.out_dir is not None:
             from agents.recorder import write_run
 
@@ -505,11 +503,3 @@ async def run_monitor(exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig, *, 
     whose earlier monitor left (see :class:`MonitorProcess`)."""
     return await MonitorProcess(exp, bus, keys, cfg, out_dir=out_dir, progress=progress, dashboard=dashboard,
                                 resume=resume).run()
-
-
-def _rejected(team: dict[str, dict[str, int]], rows: Any) -> dict[str, dict[str, int]]:
-    """One receiver's rejected messages per sender and reason, merged into the team's too."""
-    mine: dict[str, dict[str, int]] = {}
-    Rejects.merge(mine, rows)
-    Rejects.merge(team, rows)
-    return mine

@@ -99,6 +99,14 @@ class Rejects:
             rec["total"] += c
             rec[REASONS[r]] = rec.get(REASONS[r], 0) + c
 
+    @staticmethod
+    def mine(team: dict[str, dict[str, int]], rows: np.ndarray) -> dict[str, dict[str, int]]:
+        """One receiver's rejected messages per sender and reason, merged into the team's too."""
+        mine: dict[str, dict[str, int]] = {}
+        Rejects.merge(mine, rows)
+        Rejects.merge(team, rows)
+        return mine
+
 
 def _msg(kind: str, sender: int, stamp: int, arrays: dict, **kw: Any) -> bytes:
     return encode_fields(kind, sender, stamp, arrays, **kw)
