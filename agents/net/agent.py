@@ -20,9 +20,8 @@ from transport.keys import Keys
 from transport.zenoh_bus import Bus
 
 from .config import LAZY, RunConfig
-from .health import LinkHealth
 from .evidence_net import signing_for
-from .evidence_net import unsigned as _unsigned
+from .health import LinkHealth
 from .protocol import Role
 from .rejoin import RejoinChecks
 from .schedule import schedule_for
@@ -204,8 +203,7 @@ class AgentProcess(RejoinChecks, Role):
         and note its arrival for the lockstep wait lists (and its signed copy, ``m``)."""
         self.node.receive(j, stamp, x)
         self.health.arrived(j, stamp, self.last)
-        if self.signing is not None and m is not None:
-            self.signing.note(j, m)
+        self.signing.note(j, m)
         if stamp >= self.last - 2 and len(self.arrived) < 4096:
             self.arrived.setdefault(stamp, set()).add(j)
 
@@ -308,9 +306,7 @@ class AgentProcess(RejoinChecks, Role):
         msg = node.publish(k, out) if node.strategy is not None else out
         aid = self.id
         drop = self.schedule.droppable
-        sig = self.signing.meta if self.signing is not None else _unsigned
-        if self.signing is not None:
-            self.signing.report(bus, self.keys, k)
+        sig = self.signing.begin(bus, self.keys, k)  # rse run --sign: the report of what this agent was told
         try:
             if k < self.silent_until:  # warming up after a late join: listen only
                 to, stamps = [], []

@@ -62,20 +62,31 @@ def _sig_bytes(words: np.ndarray) -> bytes | None:
 
 
 class Signing:
-    """One agent's signing key and, for a regular agent, the copies it reports."""
+    """One agent's signing key (None: it signs nothing) and, for a regular agent, the
+    copies it reports."""
 
-    def __init__(self, run_id: str, agent_id: int, signer: Any, *, regular: bool) -> None:
-        self.run_id, self.id, self.signer, self.regular = run_id, agent_id, signer, regular
+    def __init__(self, run_id: str, agent_id: int, signer: Any = None, *, regular: bool = False) -> None:
+        self.run_id, self.id, self.signer, self.regular = run_id, agent_id, signer, regular and signer is not None
         self.copies: list[tuple[int, int, int, np.ndarray, bytes]] = []  # (from, field, stamp, x, sig)
         self.signatures = 0
+
+    def begin(self, bus: Any, keys: Any, k: int) -> Any:
+        """Round ``k``: send the report of what this agent was told, then return how its
+        estimates are signed (:meth:`meta`, or :func:`unsigned`)."""
+        if self.signer is None:
+            return unsigned
+        self.report(bus, keys, k)
+        return self.meta
 
     def meta(self, receiver: int | None, stamp: int, x: Any) -> dict[str, Any]:
         """The metadata of a signed estimate: ``{"sig": hex}``."""
         self.signatures += 1
         return {"sig": self.signer.sign(self.run_id, KIND, self.id, receiver, stamp, payload_bytes(x)).hex()}
 
-    def note(self, j: int, m: Message) -> None:
+    def note(self, j: int, m: Message | None) -> None:
         """A regular agent took ``m`` from in-neighbour ``j``: keep its signed copy."""
+        if m is None or not self.regular:
+            return
         sig = (m.meta or {}).get("sig")
         if (not self.regular or not isinstance(sig, str) or len(sig) != 128 or len(self.copies) >= MAX_COPIES
                 or m.arrays["x"].ndim != 1):  # the estimates of every scenario are vectors
@@ -170,10 +181,10 @@ class Convictions:
                 "bad_signatures": self.bad_signatures, "verifications": self.verifications, "copies": self.copies}
 
 
-def signing_for(part: Any, cfg: Any, run_id: str, *, regular: bool) -> Signing | None:
-    """The :class:`Signing` of an agent's slice with ``cfg.sign`` (else None)."""
+def signing_for(part: Any, cfg: Any, run_id: str, *, regular: bool) -> Signing:
+    """The :class:`Signing` of an agent's slice (with ``cfg.sign``; else one that signs nothing)."""
     if not getattr(cfg, "sign", None):
-        return None
+        return Signing(run_id, part.agent_id)
     from transport.signing import load_signer
 
     try:

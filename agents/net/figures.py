@@ -6,9 +6,11 @@ from __future__ import annotations
 import math
 import resource
 
+import numpy as np
+
 from transport.zenoh_session import thread_counts
 
-__all__ = ["maxrss_mb", "cpu_s", "uss_mb", "process_figures"]
+__all__ = ["maxrss_mb", "cpu_s", "uss_mb", "process_figures", "unrecorded"]
 
 
 def maxrss_mb() -> float:
@@ -60,3 +62,15 @@ def process_figures() -> dict[str, float]:
     if math.isfinite(uss):
         figs["uss_mb"] = uss
     return figs
+
+
+def unrecorded(truth_norm: np.ndarray) -> list[list[int]]:
+    """``[first, last]`` of every run of rounds with no record (no monitor ran then)."""
+    miss = np.isnan(truth_norm)
+    out: list[list[int]] = []
+    for k in np.flatnonzero(miss):
+        if out and out[-1][1] == k - 1:
+            out[-1][1] = int(k)
+        else:
+            out.append([int(k), int(k)])
+    return out

@@ -21,7 +21,7 @@ from transport.zenoh_bus import Bus
 
 from .config import ACK_EVERY, MONITOR_LAG, RECONNECTS, TOKENS_SETTLE_S, UNHEARD_S, RunConfig
 from .evidence_net import TOLD, convictions_for
-from .figures import process_figures
+from .figures import process_figures, unrecorded
 from .protocol import Role
 from .wire import Rejects, _msg, diagnostics_from_meta, out_ids_of, report_to, who_name
 
@@ -458,7 +458,7 @@ class MonitorProcess(Role):
         # each agent's link rows (agents.rounds.link_rows), by receiver index as the simulator's
         reports = [(aid, self.stats[str(aid)].arrays["links"]) for aid in exp.agent_ids if str(aid) in self.stats]
         summary, results = summarise_run(exp, mon, links_table(reports), rejected, complete=complete, reason=reason)
-        summary["unrecorded_rounds"] = _gaps(mon.truth_norm[: mon.last_round + 1, 0])
+        summary["unrecorded_rounds"] = unrecorded(mon.truth_norm[: mon.last_round + 1, 0])
         summary["performance"] = perf
         summary["driver"] = "run"
         summary["mode"] = self.cfg.mode
@@ -480,18 +480,6 @@ class MonitorProcess(Role):
                 np.save(self.out_dir / "estimates.npy", self.traj[: mon.last_round + 1])
                 np.save(self.out_dir / "truth.npy", self.truth[: mon.last_round + 1])
         return MonitorResult(summary, self.out_dir, self.traj, self.truth)
-
-
-def _gaps(truth_norm: np.ndarray) -> list[list[int]]:
-    """``[first, last]`` of every run of rounds with no record (no monitor ran then)."""
-    miss = np.isnan(truth_norm)
-    out: list[list[int]] = []
-    for k in np.flatnonzero(miss):
-        if out and out[-1][1] == k - 1:
-            out[-1][1] = int(k)
-        else:
-            out.append([int(k), int(k)])
-    return out
 
 
 async def run_monitor(exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig, *, out_dir: Path | None = None,
