@@ -38,7 +38,8 @@ __all__ = ["SimResult", "batch_groups", "closed_team", "deliver", "make_channel"
 def batch_groups(exp: Experiment, nodes: list[AgentNode]) -> list[Batch]:
     """The regular agents stepped together, one :class:`~estimation.batching.Batch` per
     group of estimators that declare :class:`~estimation.batching.Batchable` with equal
-    ``batch_key()`` (e.g. LFRE agents by fusion rule and ``f``; every Lee-Kim-Shim agent).
+    ``batch_key()`` (e.g. LFRE agents by fusion rule and ``f``; Lee-Kim-Shim agents of up to 64
+    states); an estimator whose key is None steps on its own.
     Byzantine agents always run their own ``step``."""
     keys: dict[Any, list[int]] = {}
     for i, node in enumerate(nodes):

@@ -149,7 +149,8 @@ def design_json(exp: "Experiment") -> dict:
         "basis_method": d.basis.method, "V": d.basis.V, "W": d.basis.W, "S": d.basis.S,
         "observers": [
             {"agent": aid, "observable": ob.observable, "L": ob.L,
-             "poles_real": np.real(ob.poles), "poles_imag": np.imag(ob.poles)}
+             "poles_real": np.real(ob.poles), "poles_imag": np.imag(ob.poles),
+             **({"Ld": ob.Ld} if ob.Ld is not None else {})}  # the sampled gain the agent runs
             for aid, ob in zip(exp.agent_ids, d.observers)
         ],
     }

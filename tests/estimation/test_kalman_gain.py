@@ -86,3 +86,28 @@ def test_repeated_eigenvalues_fall_back_to_the_recursion():
     C[0, 0] = 1.0
     (U,) = unobservable_subspaces(A, [C])
     assert same(U, unobservable_subspace(C, A)) and U.shape[1] == 8
+
+
+def test_neighbour_values_come_in_the_senders_order_whatever_the_arrival():
+    """A sum over them rounds alike in the simulator and in processes, where messages
+    arrive in any order."""
+    from estimation.base import Received, held
+
+    a, b, c = np.array([0.1]), np.array([0.2]), np.array([0.3])
+    arrived = {5: Received(5, 3, c), 1: Received(1, 3, a), 2: Received(2, 1, b)}
+    assert [v[0] for v in held(arrived, 3, max_age=3)] == [0.1, 0.2, 0.3]
+    assert [v[0] for v in held(arrived, 3, max_age=1)] == [0.1, 0.3]  # stamped 1: too old
+
+
+def test_large_agents_step_on_their_own():
+    """Above BATCH_MAX_N states the simulator does not stack Lee-Kim-Shim agents."""
+    from estimation.lee_kim_shim import BATCH_MAX_N
+
+    for G, batched in ((6, True), (BATCH_MAX_N // 2 + 1, False)):
+        A, _ = _oscillators(G, seed=2)
+        n = 2 * G
+        Cs = [np.eye(n)[[0, G]], np.eye(n)[[G - 1, n - 1]]]
+        des = design(A, np.zeros((n, 1)), Cs, gains="kalman", dt=0.01)
+        est = LeeKimShim(des, agent=0, kappa=1.0, gamma=1.0, dt=0.01, input_fn=lambda t: np.zeros(1),
+                         x0=np.zeros(n), max_degree=1)
+        assert (est.batch_key() is not None) is batched, n
