@@ -270,6 +270,10 @@ def _episode(exp: Any, run_dir: Path, faults: list[Fault], res: ChaosResult, *, 
     result = got.get("result")
     if result is not None and result.failures and not stop.is_set():
         res.failures += [f"{run_dir.name}: {f}" for f in result.failures]
+    for ev in inj.events:  # a restarted process that failed (not one the injector killed)
+        if ev["what"] == "exited" and ev["status"] > 0:
+            res.failures.append(f"{run_dir.name}: the restarted {ev['name']} failed (exit status {ev['status']}; "
+                                f"{run_dir / 'chaos-logs'})")
     if stop.is_set() or not (run_dir / "metrics.parquet").exists():
         return
     _measure(run_dir, faults, inj, res, rate=rate, regular=regular, outs=outs, windows=windows, exp=exp)

@@ -112,11 +112,26 @@ def test_fault_targets_read_well():
 
 @pytest.mark.parametrize("args, message", [
     (["--faults", "kill-agent,explode"], "--faults: unknown fault kind(s) explode; valid: kill-agent"),
-    (["--budget", "cut-link=soon"], "--budget cut-link=soon: expected KIND=SECONDS"),
-    (["--set", "network.graph.kind=rnig"], "network.graph: unknown kind 'rnig'"),
 ])
 def test_bad_input_exits_2_with_one_line(run_rse, tmp_path, args, message):
     res = run_rse("chaos", str(SCENARIOS / "lee_kim_shim.toml"), "--duration", "30", *args, "--out", str(tmp_path / "c"))
     assert res.returncode == 2, res.stderr
     assert message in res.stderr and "Traceback" not in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_the_faults_are_marked_on_the_runs_timeline(tmp_path):
+    rr = pytest.importorskip("rerun")
+    pytest.importorskip("datafusion", reason="reading .rrd files needs rerun-sdk[catalog] (the test extra)")
+    from agents.dashboard import log_fault_marks
+
+    path = tmp_path / "chaos.rrd"
+    log_fault_marks(path, run_id="team-1", dt=0.01, marks=[(250, "fault 0: kill-agent agent 3 begins"),
+                                                          (120, "fault 1: cut-link link 1<->2 ends")])
+    with rr.server.Server(datasets={"run": [str(path)]}) as srv:
+        client = srv.client()
+        df = client.get_dataset("run").reader(index="k").to_pandas()
+        del client
+    marks = df[["k", "/events/faults:TextLog:text"]].dropna()
+    assert [(int(k), list(t)[0]) for k, t in marks.itertuples(index=False)] == [
+        (120, "fault 1: cut-link link 1<->2 ends"), (250, "fault 0: kill-agent agent 3 begins")]
