@@ -49,9 +49,10 @@ def rse_command(*args: str) -> list[str]:
 class Injector:
     """Injects faults into the team of ``run_dir`` ticking at ``rate`` Hz (see the module)."""
 
-    def __init__(self, run_dir: Path, rate: float, *, stop: threading.Event, rerun: bool = True) -> None:
+    def __init__(self, run_dir: Path, rate: float, *, stop: threading.Event, rerun: bool = True,
+                 warmup: float = 3.0) -> None:
         self.run_dir, self.rate, self.stop = run_dir, rate, stop
-        self.rerun = rerun
+        self.rerun, self.warmup = rerun, warmup
         self.pids: dict[str, int] = {}
         self.events: list[dict[str, Any]] = []
         self.restarted: list[tuple[str, subprocess.Popen]] = []
@@ -157,7 +158,8 @@ class Injector:
         if name == "monitor":
             args = rse_command("monitor", "--team", team, "--verbose", *(() if self.rerun else ("--no-rerun",)))
         else:
-            args = rse_command("agent", "--id", name.split()[1], "--team", team, "--verbose")
+            args = rse_command("agent", "--id", name.split()[1], "--team", team, "--warmup", repr(self.warmup),
+                               "--verbose")
         log = self.run_dir / "chaos-logs" / f"{name.replace(' ', '-')}-{self._restarts}.log"
         with open(log, "wb") as out:
             p = subprocess.Popen(args, stdout=out, stderr=out, stdin=subprocess.DEVNULL)

@@ -235,7 +235,7 @@ def _episode(exp: Any, run_dir: Path, faults: list[Fault], res: ChaosResult, *, 
     from agents.net.config import RunConfig
     from agents.net.launcher import Hooks, launch
 
-    inj = Injector(run_dir, rate, stop=stop, rerun=rerun)
+    inj = Injector(run_dir, rate, stop=stop, rerun=rerun, warmup=warmup)
     got: dict[str, Any] = {}
 
     def noted(line: str) -> None:

@@ -75,9 +75,9 @@ def table_lines(res: Any) -> list[str]:
     from ..chaos.measure import fmt_s
 
     lines = [f"chaos: {len(res.rows)} fault(s); recovered: {res.bound.metric} <= {res.bound.limit:g} "
-             f"({res.bound.source})", HEAD]
+             f"({res.bound.source})" + ("; at: TEAM/SECONDS" if len(res.episodes) > 1 else ""), HEAD]
     for r in res.rows:
-        at = f"{r['at_s']:.1f}" if len(res.episodes) < 2 else f"{r['episode'] + 1}:{r['at_s']:.1f}"
+        at = f"{r['at_s']:.1f}" if len(res.episodes) < 2 else f"{r['episode'] + 1}/{r['at_s']:05.1f}"
         lines.append(f"{r['fault']:>3}  {r['kind']:<12}  {r['target']:<12}  {at:>7}  {r['lasts_s']:>7.1f}  "
                      f"{fmt_s(r['noticed_s']):>9}  {fmt_s(r['recovered_s']):>11}  {r['budget_s']:>8g}  "
                      f"{r['rounds_unrecorded']:>10}  {'ok' if r['recovered'] else 'FAIL'}")
