@@ -103,8 +103,7 @@ class Injector:
         """Inject ``faults`` (one episode's) in turn, each at its time; returns early when
         ``stop`` is set or ``alive()`` turns False (the team ended)."""
         for f in faults:
-            assert self._t0 is not None
-            if not self._sleep_until(self._t0 + f.at, alive):
+            if self._t0 is None or not self._sleep_until(self._t0 + f.at, alive):
                 return
             self._begin(f)
             end_ok = self._sleep_until(time.time() + f.lasts, alive)
