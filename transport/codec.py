@@ -32,7 +32,7 @@ out of the input (never views into the caller's buffer, never writeable again). 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
@@ -116,7 +116,7 @@ class Message:
     stamp: int
     arrays: Mapping[str, np.ndarray]
     receiver: int | None = None
-    meta: Mapping[str, MetaValue] | None = None
+    meta: Mapping[str, MetaValue] = field(default_factory=dict)  # None is taken as empty
     version: int = VERSION
 
     def __post_init__(self) -> None:
@@ -132,7 +132,7 @@ class Message:
         if len(self.arrays) > MAX_FIELDS:
             raise _fail("keys", f"{len(self.arrays)} arrays, at most {MAX_FIELDS}")
         arrays = {name: _freeze_array(name, value) for name, value in self.arrays.items()}
-        if self.meta is None:
+        if self.meta is None:  # an untyped caller's None
             meta: Mapping[str, MetaValue] = _EMPTY
         elif isinstance(self.meta, Mapping):
             meta = MappingProxyType(dict(_check_meta(dict(self.meta))))

@@ -8,7 +8,7 @@ import asyncio
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -38,7 +38,7 @@ log = logging.getLogger("rse.net")
 POLL_S = 0.001  # lockstep: how soon a round missing a polled message looks again (_poll_later; libuv counts whole ms)
 
 
-class AgentProcess(RejoinChecks, Role):
+class AgentProcess(RejoinChecks, Role["AgentSlice"]):
     name = "agent"
 
     def __init__(self, part: AgentSlice, bus: Bus, keys: Keys, cfg: RunConfig,
@@ -153,7 +153,7 @@ class AgentProcess(RejoinChecks, Role):
             self.health.measured(m.stamp, now)
             return
         if self.view is not None:
-            self._handle_view(key, payload)
+            self._handle_view(self.view, key, payload)
             return
         if "/ctl/done/" in key:
             self._merged_done(key, payload)
@@ -163,7 +163,7 @@ class AgentProcess(RejoinChecks, Role):
             return
         p, m = got
         j = p.sender
-        if j not in self.node.links:
+        if j is None or j not in self.node.links:
             self.rejects.add(j, "neighbour")
             return
         self._take(j, m.stamp, m.arrays["x"], m)
@@ -207,7 +207,7 @@ class AgentProcess(RejoinChecks, Role):
         if stamp >= self.last - 2 and len(self.arrived) < 4096:
             self.arrived.setdefault(stamp, set()).add(j)
 
-    def _handle_view(self, key: str, payload: bytes) -> None:
+    def _handle_view(self, view: NetworkView, key: str, payload: bytes) -> None:
         """A Byzantine agent with a view hears every estimate of the run and the done
         reports of the agents it depends on: its own inbox, and the view's store."""
         try:
@@ -218,10 +218,10 @@ class AgentProcess(RejoinChecks, Role):
         if p.kind == "ctl" and p.sender in self.part.merged and self._merge_in:
             got = self._merged_done(key, payload)  # an estimate too: for my inbox and for the view
             if got is not None:
-                j, stamp, x, receivers = got
-                if (receivers is None or receivers) and self.view.wants(j, None):
-                    self.view.add(j, None, stamp, x)
-                self.view.add_done(j, stamp, [(r, stamp) for r in receivers or ()])
+                src, stamp, x, receivers = got
+                if (receivers is None or receivers) and view.wants(src, None):
+                    view.add(src, None, stamp, x)
+                view.add_done(src, stamp, [(r, stamp) for r in receivers or ()])
             return
         if p.kind == "ctl":
             try:
@@ -230,15 +230,19 @@ class AgentProcess(RejoinChecks, Role):
                 self.rejects.add(p.sender, exc.reason)
                 return
             # a broadcast report comes only from an agent whose report is its estimate
-            got_to = receivers_of(m, self.part.N) if m.kind == "done" and p.sender in self.view.index_of else None
-            if got_to is None:
-                self.rejects.add(p.sender, "type" if m.kind != "done" else "range")
+            sender = p.sender
+            got_to = receivers_of(m, self.part.N) if m.kind == "done" and sender in view.index_of else None
+            if sender is None or got_to is None:
+                self.rejects.add(sender, "type" if m.kind != "done" else "range")
                 return
-            self.view.add_done(p.sender, m.stamp, list(zip(*got_to)))
+            view.add_done(sender, m.stamp, list(zip(*got_to)))
             return
         j, receiver = p.sender, p.receiver
+        if j is None:  # an estimate key names its sender (Keys.parse)
+            self.rejects.add(None, "key")
+            return
         mine = receiver == self.id or (receiver is None and j in self.node.links)
-        if not mine and not (self.view.wants(j, receiver)):
+        if not mine and not (view.wants(j, receiver)):
             return
         try:
             m = decode(payload, schema=self.est_schema, expected_sender=j, expected_receiver=receiver)
@@ -247,8 +251,8 @@ class AgentProcess(RejoinChecks, Role):
             if mine:
                 self.node.reject(j)
             return
-        if self.view.wants(j, receiver):
-            self.view.add(j, receiver, m.stamp, m.arrays["x"])
+        if view.wants(j, receiver):
+            view.add(j, receiver, m.stamp, m.arrays["x"])
         if not mine:
             return
         if j not in self.node.links:
@@ -259,8 +263,10 @@ class AgentProcess(RejoinChecks, Role):
     def _release_held(self, now: float) -> bool:
         """Lockstep, phase two of round k for an omniscient adversary: publish once the
         view is complete (or the deadline passed). Returns whether it was published."""
-        k, out, t0 = self._held
-        view = self.view
+        held, view = self._held, self.view
+        if held is None or view is None:  # nothing held: only an adversary with a view holds a round
+            return True
+        k, out, t0 = held
         missing = view.missing(k, lambda s: ("agent", s) in self.alive)
         if missing:
             if now < t0 + self.cfg.deadline:
@@ -307,6 +313,8 @@ class AgentProcess(RejoinChecks, Role):
         aid = self.id
         drop = self.schedule.droppable
         sig = self.signing.begin(bus, self.keys, k)  # rse run --sign: the report of what this agent was told
+        to: Sequence[int]
+        stamps: list[int]
         try:
             if k < self.silent_until:  # warming up after a late join: listen only
                 to, stamps = [], []
@@ -430,7 +438,7 @@ class AgentProcess(RejoinChecks, Role):
             # one local delivery each (2 of the 5 ms between the last honest report and
             # this agent's round on mitra_cells.toml)
             for j in sorted(self.view.out_set):
-                for s in self.part.view.before.get(j, ()):
+                for s in self.view.before.get(j, ()):
                     bus.subscribe(keys.est(s, j), self.queue)
             for s in sorted(set(self.view.needed) | set(merged_ins)):
                 bus.subscribe(keys.ctl("done", s), self.queue)
@@ -444,6 +452,7 @@ class AgentProcess(RejoinChecks, Role):
         bus.announce(keys.alive("agent", self.id))
         consumer = asyncio.ensure_future(self.consume())
         t_start = time.monotonic()
+        timeout: float | None  # how long to wait for a change (None: until one comes)
         try:
             while not self.finished.is_set():
                 self.changed.clear()

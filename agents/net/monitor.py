@@ -23,9 +23,10 @@ from .config import ACK_EVERY, MONITOR_LAG, RECONNECTS, TOKENS_SETTLE_S, UNHEARD
 from .evidence_net import TOLD, convictions_for
 from .figures import process_figures, unrecorded
 from .protocol import Role
-from .wire import Rejects, _msg, diagnostics_from_meta, out_ids_of, report_to, who_name
+from .wire import Rejects, _msg, broadcast_to, diagnostics_from_meta, out_ids_of, who_name
 
 if TYPE_CHECKING:
+    from agents.recorder import MetricsStream
     from scenarios.build import Experiment
 
 log = logging.getLogger("rse.net")
@@ -33,9 +34,9 @@ log = logging.getLogger("rse.net")
 
 @dataclass
 class _Round:
-    x: np.ndarray | None = None
-    est: np.ndarray | None = None
-    present: np.ndarray | None = None
+    est: np.ndarray  # (N, n) the reported estimates (NaN: none)
+    present: np.ndarray  # (N,) bool: the agents that reported
+    x: np.ndarray | None = None  # the truth, once the plant's came
     diag: dict[int, tuple[dict[str, float], bool | None]] = field(default_factory=dict)
 
 
@@ -47,7 +48,7 @@ class MonitorResult:
     truth: np.ndarray | None = None
 
 
-class MonitorProcess(Role):
+class MonitorProcess(Role["Experiment"]):
     name = "monitor"
 
     def __init__(self, exp: Experiment, bus: Bus, keys: Keys, cfg: RunConfig, *, out_dir: Path | None = None,
@@ -67,7 +68,7 @@ class MonitorProcess(Role):
         # round it sees; the rounds in between are the gap
         self.resume = resume
         self.synced = not resume
-        self.stream = None
+        self.stream: MetricsStream | None = None
         if out_dir is not None:
             self._setup_stream(Path(out_dir))
         self.progress = progress or (lambda kind, data: None)
@@ -215,7 +216,7 @@ class MonitorProcess(Role):
                 if diag or flag is not None:
                     r.diag[i] = (diag, flag)
             if self.dashboard is not None:
-                to, stamps = (report_to(m, self._outs[p.sender], self.exp.N) if m.kind == "est"
+                to, stamps = (broadcast_to(self._outs[p.sender], k) if m.kind == "est"
                               else (m.arrays["to"], m.arrays["stamps"]))
                 self._links_of(p.sender, k, to, stamps)
         elif "/ctl/stats/" in key:
@@ -322,7 +323,7 @@ class MonitorProcess(Role):
                 self.mon.record(k, r.x, r.est, r.present)
                 for i, (diag, flag) in r.diag.items():
                     self.mon.record_diagnostics(k, i, diag, flag)
-                if self.traj is not None:
+                if self.traj is not None and self.truth is not None:  # cfg.save_estimates
                     self.traj[k] = np.where(r.present[:, None], r.est, np.nan)
                     self.truth[k] = r.x
             self.rounds.pop(k, None)
@@ -476,7 +477,7 @@ class MonitorProcess(Role):
             if self.stream is not None:
                 self.stream.close()
             write_run(self.out_dir, exp, mon, regular, summary)
-            if self.traj is not None:
+            if self.traj is not None and self.truth is not None:  # cfg.save_estimates
                 np.save(self.out_dir / "estimates.npy", self.traj[: mon.last_round + 1])
                 np.save(self.out_dir / "truth.npy", self.truth[: mon.last_round + 1])
         return MonitorResult(summary, self.out_dir, self.traj, self.truth)

@@ -123,8 +123,13 @@ def report_to(m: Message, out_ids: Sequence[int], team: int) -> tuple[list[int],
     ``out_ids`` (the sender's out-neighbours) stamped with the round for an "est" (a
     broadcast report), else :func:`receivers_of`."""
     if m.kind == "est":
-        return list(out_ids), [m.stamp] * len(out_ids)
+        return broadcast_to(out_ids, m.stamp)
     return receivers_of(m, team)
+
+
+def broadcast_to(out_ids: Sequence[int], stamp: int) -> tuple[list[int], list[int]]:
+    """A broadcast report's receivers (every out-neighbour) and stamps (the round)."""
+    return list(out_ids), [stamp] * len(out_ids)
 
 
 def receivers_of(m: Message, team: int) -> tuple[list[int], list[int]] | None:
