@@ -230,19 +230,15 @@ class AgentProcess(RejoinChecks, Role["AgentSlice"]):
                 self.rejects.add(p.sender, exc.reason)
                 return
             # a broadcast report comes only from an agent whose report is its estimate
-            sender = p.sender
-            got_to = receivers_of(m, self.part.N) if m.kind == "done" and sender in view.index_of else None
-            if sender is None or got_to is None:
-                self.rejects.add(sender, "type" if m.kind != "done" else "range")
+            got_to = receivers_of(m, self.part.N) if m.kind == "done" and p.sender in view.index_of else None
+            if got_to is None or p.sender is None:
+                self.rejects.add(p.sender, "type" if m.kind != "done" else "range")
                 return
-            view.add_done(sender, m.stamp, list(zip(*got_to)))
+            view.add_done(p.sender, m.stamp, list(zip(*got_to)))
             return
         j, receiver = p.sender, p.receiver
-        if j is None:  # an estimate key names its sender (Keys.parse)
-            self.rejects.add(None, "key")
-            return
         mine = receiver == self.id or (receiver is None and j in self.node.links)
-        if not mine and not (view.wants(j, receiver)):
+        if j is None or not (mine or view.wants(j, receiver)):  # (an estimate key names its sender)
             return
         try:
             m = decode(payload, schema=self.est_schema, expected_sender=j, expected_receiver=receiver)
@@ -263,9 +259,8 @@ class AgentProcess(RejoinChecks, Role["AgentSlice"]):
     def _release_held(self, now: float) -> bool:
         """Lockstep, phase two of round k for an omniscient adversary: publish once the
         view is complete (or the deadline passed). Returns whether it was published."""
-        held, view = self._held, self.view
-        if held is None or view is None:  # nothing held: only an adversary with a view holds a round
-            return True
+        if (held := self._held) is None or (view := self.view) is None:
+            return True  # nothing held: only an adversary with a view holds a round
         k, out, t0 = held
         missing = view.missing(k, lambda s: ("agent", s) in self.alive)
         if missing:
@@ -452,7 +447,6 @@ class AgentProcess(RejoinChecks, Role["AgentSlice"]):
         bus.announce(keys.alive("agent", self.id))
         consumer = asyncio.ensure_future(self.consume())
         t_start = time.monotonic()
-        timeout: float | None  # how long to wait for a change (None: until one comes)
         try:
             while not self.finished.is_set():
                 self.changed.clear()
@@ -471,7 +465,7 @@ class AgentProcess(RejoinChecks, Role["AgentSlice"]):
                         break
                     if not self.running_team and time.monotonic() - t_start > cfg.startup_timeout:
                         raise TransportError(f"agent {self.id}: no plant found within {cfg.startup_timeout:g} s")
-                    timeout = 0.1
+                    timeout: float | None = 0.1  # (None: wait until a change comes)
                 else:
                     timeout = await self.schedule.idle(self)
                 if ("plant", 0) not in self.alive and self.plant_seen_at is not None and self.stop is None:
