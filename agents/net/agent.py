@@ -8,7 +8,7 @@ import asyncio
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -26,7 +26,7 @@ from .protocol import Role
 from .rejoin import RejoinChecks
 from .schedule import schedule_for
 from .view import NetworkView, reads_view
-from .wire import _msg, diagnostics_meta, receivers_of
+from .wire import _msg, broadcast_to, diagnostics_meta, receivers_of
 
 if TYPE_CHECKING:
     from scenarios.build import Experiment
@@ -272,10 +272,7 @@ class AgentProcess(RejoinChecks, Role["AgentSlice"]):
                 self.wake_at(1)
                 self._tick_at(now)
                 return False
-            self.waited_out += 1
-            if self.waited_out in (1, 10, 100, 1000):
-                log.warning("agent %d: round %d published without a complete view (%d time(s))", self.id, k,
-                            self.waited_out)
+            self.went_on_without(k, "published without a complete view")
         self._held = None
         self._publish_round(k, out)
         return True
@@ -308,11 +305,9 @@ class AgentProcess(RejoinChecks, Role["AgentSlice"]):
         aid = self.id
         drop = self.schedule.droppable
         sig = self.signing.begin(bus, self.keys, k)  # rse run --sign: the report of what this agent was told
-        to: Sequence[int]
-        stamps: list[int]
         try:
             if k < self.silent_until:  # warming up after a late join: listen only
-                to, stamps = [], []
+                to, stamps = broadcast_to((), k)
             elif isinstance(msg, dict):
                 to, stamps = [], []
                 for tgt, stamp, value in addressed(msg, k, self.out_ids):
@@ -344,12 +339,12 @@ class AgentProcess(RejoinChecks, Role["AgentSlice"]):
         arrays = {"x": own, "to": np.array(to, dtype=float), "stamps": np.array(stamps, dtype=float)}
         bus.publish(self._done_key, _msg("done", aid, k, arrays, meta=meta or None))
 
-    def went_on_without(self, k: int) -> None:
-        """Lockstep: round ``k`` ran after its deadline without some neighbours' messages."""
+    def went_on_without(self, k: int, what: str = "went on without some neighbours' messages") -> None:
+        """Lockstep: round ``k`` ran after its deadline without some neighbours' messages (an
+        omniscient adversary's: without a complete view)."""
         self.waited_out += 1
         if self.waited_out in (1, 10, 100, 1000):
-            log.warning("agent %d: round %d went on without some neighbours' messages (%d time(s))",
-                        self.id, k, self.waited_out)
+            log.warning("agent %d: round %d %s (%d time(s))", self.id, k, what, self.waited_out)
 
     def _step(self) -> None:
         """Run every round that can run now (which: the schedule's choice)."""
