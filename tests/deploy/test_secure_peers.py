@@ -320,3 +320,42 @@ def test_plain_mode_says_what_it_is_off_loopback():
         assert code == 2 and "give one of them" in se, se
         assert ("plain mode authenticates nobody" in se) is warned, se
         assert "Traceback" not in se
+
+
+@pytest.mark.slow
+def test_single_roles_are_secure_peers_with_explicit_endpoints(certs, tmp_path):
+    """rse plant, rse monitor and five rse agent processes, each with --secure, its own
+    --listen tls/ endpoint and the others' as --connect (as across hosts): the team runs in
+    lockstep, nothing is rejected (every estimate's pairwise tag checks) and every estimate
+    equals rse simulate's."""
+    from agents.api import load_experiment
+    from agents.simulate import simulate
+    from transport.zenoh_session import free_tcp_port
+
+    ov = ("run.dt=0.01", "run.duration=3", "expect=[]")
+    names = ["plant", "monitor", *(f"agent {i}" for i in range(1, 6))]
+    eps = {nm: f"tls/127.0.0.1:{free_tcp_port()}" for nm in names}
+    out = tmp_path / "run"
+    ps = Procs()
+    try:
+        procs = {}
+        for nm in names:
+            role, *aid = nm.split()
+            args = [role, *(["--id", aid[0]] if aid else []), str(LKS), "--run-id", "p2p-roles", "--secure", str(certs),
+                    "--listen", eps[nm], *(a for other in names if other != nm for a in ("--connect", eps[other])),
+                    "--deadline", "30"]
+            for o in ov:
+                args += ["--set", o]
+            if role == "monitor":
+                args += ["--out", str(out), "--no-rerun", "--save-estimates"]
+            procs[nm] = ps.start(rse_cmd(*args))
+        for nm, p in procs.items():
+            _so, se = p.communicate(timeout=300)  # a hang only
+            assert p.returncode == 0 and "Traceback" not in se, (nm, se)
+    finally:
+        ps.kill_all()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"] and summary["rejected"] == {}, summary["rejected"]
+    exp, _ = load_experiment(LKS, ov, None)
+    ref = simulate(exp, keep_trajectories=True)
+    assert float(np.max(np.abs(np.load(out / "estimates.npy") - ref.estimates))) <= 1e-12
