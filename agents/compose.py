@@ -27,7 +27,10 @@ image with Rerun, pyarrow and pydantic), all with ``rse`` as entry point. The se
 With ``secure`` (a directory written by ``rse certs``) every process presents its own TLS
 identity: a service mounts ``ca.pem`` and its own ``IDENTITY.pem`` / ``IDENTITY.key``
 read-only under ``/certs`` and nothing else (the router also mounts the agents'
-certificates, not their keys: they name the agents it admits).
+certificates, not their keys: they name the agents it admits). With ``peers`` too there is
+no router: every process is a secure peer listening on ``tls/0.0.0.0:7450`` and linked to
+the others by service name, and it also mounts the team's certificates (public: its ingress
+rules and pairwise keys need them).
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ __all__ = ["DEFAULT_IMAGE", "ROUTER_PORT", "WEB_PORT", "GRPC_PORT", "default_run
 
 DEFAULT_IMAGE = "resilient-state-estimation:latest"
 ROUTER_PORT = 7447
+PEER_PORT = 7450  # every secure peer's endpoint in a compose file of peers (rse compose --secure DIR --peers)
 WEB_PORT = 9090  # the Rerun web viewer page (rse monitor --web-port)
 GRPC_PORT = 9876  # the gRPC endpoint the page reads the recording from (--grpc-port)
 ROUTER_HOST = "router"  # the router's service name: its host name on the compose network
@@ -75,13 +79,13 @@ def role_images(image: str) -> dict[str, str]:
     return {"full": image, "agent": f"{name}-agent{tag}", "monitor": f"{name}-monitor{tag}"}
 
 
-def write_team(exp: Any, out: Path, *, scenario: str, run_id: str, connect: str, overrides: Sequence[str] = (),
+def write_team(exp: Any, out: Path, *, scenario: str, run_id: str, connect: str | None, overrides: Sequence[str] = (),
                seed: int | None = None) -> Path:
     """Write ``out/team.json`` and, in ``out/team/``, each agent's slice, the plant's slice
     (``plant.pkl``) and the built experiment (``experiment.pkl``) for a team of ``exp``
-    whose processes are clients of the router at ``connect``: what ``rse agent --id I``,
-    ``rse plant`` and ``rse monitor`` read with ``--team out/team.json`` (as after ``rse
-    run``). Returns the team file."""
+    whose processes are clients of the router at ``connect`` (None: peers, each given its
+    endpoints on its command line): what ``rse agent --id I``, ``rse plant`` and ``rse
+    monitor`` read with ``--team out/team.json`` (as after ``rse run``). Returns the team file."""
     import json
     import pickle
 
@@ -94,7 +98,8 @@ def write_team(exp: Any, out: Path, *, scenario: str, run_id: str, connect: str,
     write_slices(out / "team", agent_slices(exp, make_nodes(exp, make_channel(exp))))
     (out / "team" / "plant.pkl").write_bytes(pickle.dumps(plant_slice(exp), protocol=pickle.HIGHEST_PROTOCOL))
     (out / "team" / "experiment.pkl").write_bytes(pickle.dumps(exp, protocol=pickle.HIGHEST_PROTOCOL))
-    team = Team(run_id, {}, "client", (connect,), scenario, tuple(overrides), seed, RunConfig())
+    team = Team(run_id, {}, "client" if connect else "peer", (connect,) if connect else (), scenario, tuple(overrides),
+                seed, RunConfig())
     path = out / "team.json"
     path.write_text(json.dumps(team.as_dict(), indent=1))
     return path
@@ -140,7 +145,7 @@ def secure_mounts(secure: Path, identity: str, base: Path, extra: Sequence[str] 
 
 def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id: str,
                  image: str = DEFAULT_IMAGE, secure: Path | None = None, overrides: Sequence[str] = (),
-                 seed: int | None = None) -> dict[str, Any]:
+                 seed: int | None = None, peers: bool = False) -> dict[str, Any]:
     """The docker-compose document (a dict) for a team of ``scenario``.
 
     Parameters
@@ -160,6 +165,8 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
         A directory written by ``rse certs``: TLS with one identity per service.
     overrides, seed
         ``--set KEY=VALUE`` and ``--seed`` given to ``team``, which builds the experiment.
+    peers : bool
+        With ``secure``: secure peers, no router (:func:`_peer_args`).
 
     Returns
     -------
@@ -179,14 +186,21 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     # every process of the team starts from its part of the team directory (no scenario, no design)
     common = ["--team", f"{TEAM_DIR}/team.json", "--run-id", run_id, "--client", "--connect", connect]
     after = {"router": {"condition": "service_healthy"}, "team": {"condition": "service_completed_successfully"}}
+    names = ["plant", "monitor", *(f"agent-{i}" for i in agent_ids)]
+    if peers:
+        if secure is None:
+            raise ScenarioError("--peers is a team of secure peers: give --secure DIR too")
+        common = ["--team", f"{TEAM_DIR}/team.json", "--run-id", run_id]
+        del after["router"]
 
     def role(command: list[str], identity: str, img: str, mounts: list[Any]) -> dict[str, Any]:
         svc: dict[str, Any] = {"image": img, "init": True}
-        args = list(command)
+        args = list(command) + (_peer_args(identity, names) if peers else [])
         volumes = list(mounts)
         if secure is not None:
             args += ["--secure", CERTS_DIR, "--identity", identity]
-            volumes += secure_mounts(secure, identity, base)
+            team_pems = [f"{x}.pem" for x in names if x != identity] if peers else []
+            volumes += secure_mounts(secure, identity, base, extra=team_pems)
         svc["command"] = Flow(args)
         svc["volumes"] = volumes
         svc["depends_on"] = {k: dict(v) for k, v in after.items()}
@@ -198,16 +212,17 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     if secure is not None:
         router_cmd += ["--secure", CERTS_DIR, "--run-id", run_id]
     router["command"] = Flow(router_cmd)
-    if secure is not None:
+    if secure is not None and not peers:
         router["volumes"] = secure_mounts(secure, "router", base, extra=[f"agent-{i}.pem" for i in agent_ids])
     router["ports"] = [Quoted(f"{ROUTER_PORT}:{ROUTER_PORT}")]
     router["healthcheck"] = {"test": Flow(HEALTHCHECK), "interval": "2s", "timeout": "10s", "retries": 15}
     router["restart"] = "unless-stopped"
 
-    services: dict[str, Any] = {"router": router}
+    services: dict[str, Any] = {} if peers else {"router": router}
     # the design once, for every process: the volume "team" (at /runs here: a directory of the image owned by rse)
     services["team"] = {"image": images["full"], "init": True,
-                        "command": Flow(["compose", target, "--run-id", run_id, "--write-team", RUNS_DIR, *options]),
+                        "command": Flow(["compose", target, "--run-id", run_id, "--write-team", RUNS_DIR, *options,
+                                         *(["--peers"] if peers else [])]),
                         "volumes": [scenario_mount, Quoted(f"team:{RUNS_DIR}")], "restart": "no"}
     services["plant"] = role(["plant", *common], "plant", images["agent"], [team_mount])
     monitor = role(["monitor", *common, "--out", f"{RUNS_DIR}/{run_id}", "--serve-web",
@@ -222,8 +237,19 @@ def compose_spec(scenario: Path, agent_ids: Sequence[int], *, base: Path, run_id
     return {"services": services, "volumes": {"runs": {}, "team": {}}}
 
 
+def _peer_args(identity: str, names: Sequence[str]) -> list[str]:
+    """A secure peer's endpoints in a compose file: it listens on ``tls/0.0.0.0:7450`` and
+    links to each later service of ``names`` (plant, monitor, agents) by its name, so that
+    every pair is linked once and nobody forwards for another (gossip off)."""
+    later = list(names)[list(names).index(identity) + 1:]
+    out = ["--listen", f"tls/0.0.0.0:{PEER_PORT}"]
+    for other in later:
+        out += ["--connect", f"tls/{other}:{PEER_PORT}"]
+    return out
+
+
 def command_line(scenario: Path, out: str, *, base: Path, run_id: str, default_run: str, image: str,
-                 secure: Path | None, overrides: Sequence[str], seed: int | None) -> str:
+                 secure: Path | None, overrides: Sequence[str], seed: int | None, peers: bool = False) -> str:
     """The ``rse compose`` command that writes this file, run from its directory."""
     args = ["rse", "compose", _rel(scenario, base).removeprefix("./"), "-o", out]
     if image != DEFAULT_IMAGE:
@@ -232,6 +258,8 @@ def command_line(scenario: Path, out: str, *, base: Path, run_id: str, default_r
         args += ["--run-id", run_id]
     if secure is not None:
         args += ["--secure", _rel(secure, base).removeprefix("./")]
+    if peers:
+        args += ["--peers"]
     for ov in overrides:
         args += ["--set", ov]
     if seed is not None:

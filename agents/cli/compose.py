@@ -34,6 +34,9 @@ _IMAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@-]*\Z")
 @click.option("--secure", type=click.Path(path_type=Path), default=None, metavar="DIR",
               help="Credentials written by `rse certs DIR --scenario SCENARIO`: mutual TLS and the router's "
                    "access control; each service mounts only ca.pem and its own certificate and key.")
+@click.option("--peers", is_flag=True,
+              help="With --secure: secure peers, no router (each service listens on tls/0.0.0.0:7450 and links to "
+                   "the others by name; it also mounts the team's certificates).")
 @click.option("--dask-workers", type=click.IntRange(min=0), default=0, show_default=True, metavar="N",
               help="Also add a Dask scheduler (port 8786) and N Dask workers for `rse sweep --cluster "
                    "tcp://HOST:8786` (the image needs the cluster extra).")
@@ -44,7 +47,7 @@ _IMAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@-]*\Z")
                    "runs this).")
 @handle_errors
 def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output: str, image: str | None,
-            run_id: str | None, secure: Path | None, dask_workers: int, write_team: Path | None) -> None:
+            run_id: str | None, secure: Path | None, peers: bool, dask_workers: int, write_team: Path | None) -> None:
     """Write a docker-compose file running SCENARIO as a team of containers.
 
     Services: router (a Zenoh router, port 7447 published), team (one-shot: reads the
@@ -75,23 +78,24 @@ def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output
         raise ScenarioError(f"--run-id: {exc}") from None
     if write_team is not None:
         team = write_team_files(exp, write_team, scenario=str(scenario), run_id=run_id, overrides=overrides, seed=seed,
-                                connect=f"tcp/{ROUTER_HOST}:{ROUTER_PORT}")
+                                connect=None if peers else f"tcp/{ROUTER_HOST}:{ROUTER_PORT}")
         click.echo(f"wrote {team} and the slices of {len(exp.agent_ids)} agent(s) in {write_team / 'team'}")
         return
     to_stdout = output == "-"
     path = Path(output)
     base = Path.cwd() if to_stdout else (path.parent if str(path.parent) else Path("."))
     spec = compose_spec(scenario, exp.agent_ids, base=base, run_id=run_id, image=image, secure=secure,
-                        overrides=overrides, seed=seed)
+                        overrides=overrides, seed=seed, peers=peers)
     cmd = command_line(scenario, output if to_stdout else path.name, base=base, run_id=run_id,
-                       default_run=default_run, image=image, secure=secure, overrides=overrides, seed=seed)
+                       default_run=default_run, image=image, secure=secure, overrides=overrides, seed=seed, peers=peers)
     if dask_workers:
         from ..compose import DASK_PORT, dask_services
 
         spec["services"].update(dask_services(dask_workers, image=image))
         cmd += f" --dask-workers {dask_workers}"
     header = [
-        f"{exp.scenario.run.name}: router, plant, monitor and {len(exp.agent_ids)} agents; run id {run_id}.",
+        f"{exp.scenario.run.name}: {'secure peers' if peers else 'router'}, plant, monitor and {len(exp.agent_ids)} "
+        f"agents; run id {run_id}.",
         f"Written by `{cmd}`: regenerate it rather than edit it.",
         ("docker build -t resilient-state-estimation . && docker build --target agent -t "
          "resilient-state-estimation-agent . && docker build --target monitor -t "
@@ -110,7 +114,7 @@ def compose(scenario: Path, overrides: tuple[str, ...], seed: int | None, output
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
     n = len(exp.agent_ids)
-    click.echo(f"wrote {path}: router, plant, monitor, {n} agent(s) "
+    click.echo(f"wrote {path}: {'no router (secure peers)' if peers else 'router'}, plant, monitor, {n} agent(s) "
                f"({', '.join(s for s in spec['services'] if s.startswith('agent-'))}); run id {run_id}"
                + ("; TLS identities from " + str(secure) if secure is not None else "")
                + (f"; Dask scheduler and {dask_workers} worker(s)" if dask_workers else ""))
