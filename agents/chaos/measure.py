@@ -162,13 +162,26 @@ def measure_fault(rec: EpisodeRecord, f: Fault, events: list[dict[str, Any]], *,
     if f.kind == "kill-monitor":  # the rounds no monitor recorded: no agent's report
         unrec = int((~np.isfinite(err[r_s:stop])).all(axis=1).sum()) if cols else 0
     ok = recovered_s is not None and recovered_s <= f.budget + 1e-9
-    return {
+    return {"why": "" if r_rec is not None else _why(err, bound.limit, r_e, until, hold),
         "fault": f.index, "episode": f.episode, "kind": f.kind, "target": f.target,
         "at_s": r_s / rate, "lasts_s": (r_e - r_s) / rate, "begin_round": r_s, "end_round": r_e,
         "noticed_s": noticed, "recovered_s": recovered_s, "budget_s": f.budget, "recovered": ok,
         "rounds_unrecorded": unrec, "affected": ",".join(map(str, affected)),
         "bound": f"{bound.metric} <= {bound.limit:g}",
     }
+
+
+def _why(err: np.ndarray, limit: float, end: int, until: int, hold: int) -> str:
+    """Why a fault did not recover before ``until``: what the record shows of it."""
+    tail = err[max(end, until - hold):until]
+    if tail.size == 0 or until <= end:
+        return "no round between its end and the next fault"
+    if not np.isfinite(tail).any():
+        return "no report recorded in the last second before the next fault"
+    last = [c[np.isfinite(c)][-1] for c in err[end:until].T if np.isfinite(c).any()]
+    if any(v > limit for v in last):
+        return f"an affected agent still out of bound ({max(last):.3g}) at the next fault"
+    return "an affected agent stopped reporting"
 
 
 def _noticed(rec: EpisodeRecord, f: Fault, begin: dict[str, Any] | None, events: list[dict[str, Any]], r_s: int,

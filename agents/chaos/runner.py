@@ -301,7 +301,7 @@ def _measure(run_dir: Path, faults: list[Fault], inj: Injector, res: ChaosResult
                                   regular=regular, until_round=until, window=windows.get(f.index)))
     for r in rows:
         if not r["recovered"]:
-            why = "not recovered before the next fault" if r["recovered_s"] is None else \
+            why = f"not recovered before the next fault: {r['why']}" if r["recovered_s"] is None else \
                 f"recovered after {r['recovered_s']:.2f} s"
             res.failures.append(f"fault {r['fault']} ({r['kind']}, {r['target']}, at {r['at_s']:.1f} s): {why}; "
                                 f"budget {r['budget_s']:g} s")
@@ -334,7 +334,7 @@ def _write(out: Path, plan: dict[str, Any], res: ChaosResult) -> None:
     from agents.rundir import write_json
 
     cols = ["fault", "episode", "kind", "target", "at_s", "lasts_s", "begin_round", "end_round", "noticed_s",
-            "recovered_s", "budget_s", "recovered", "rounds_unrecorded", "affected", "bound"]
+            "recovered_s", "budget_s", "recovered", "rounds_unrecorded", "affected", "bound", "why"]
     df = pd.DataFrame(res.rows, columns=cols)
     df.to_parquet(out / "chaos.parquet", index=False)
     write_json(out / "chaos.json", plan | {"status": res.status, "failures": res.failures,

@@ -135,3 +135,14 @@ def test_the_faults_are_marked_on_the_runs_timeline(tmp_path):
     marks = df[["k", "/events/faults:TextLog:text"]].dropna()
     assert [(int(k), list(t)[0]) for k, t in marks.itertuples(index=False)] == [
         (120, "fault 1: cut-link link 1<->2 ends"), (250, "fault 0: kill-agent agent 3 begins")]
+
+
+def test_a_fault_not_recovered_says_what_the_record_shows():
+    from agents.chaos.measure import _why
+
+    err = np.full((100, 2), 0.1)
+    err[80:, :] = np.nan  # a monitor not back yet
+    assert _why(err, 0.25, 40, 90, 10) == "no report recorded in the last second before the next fault"
+    err[80:, :] = 0.1
+    err[60:, 1] = 0.4
+    assert _why(err, 0.25, 40, 90, 10) == "an affected agent still out of bound (0.4) at the next fault"
