@@ -19,7 +19,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from agents.net.exits import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, describe, exit_status
 from estimation.errors import RSEError, ScenarioError, TransportError
@@ -28,6 +28,19 @@ from transport.event_loop import run as run_loop
 from .config import RunConfig
 from .parent import die_with_parent as _die_with_parent
 from .recording import claim, release
+
+if TYPE_CHECKING:
+    from multiprocessing.connection import Connection
+
+    from agents.dashboard import DashboardOptions
+    from agents.rounds import Team
+    from scenarios.build import Experiment
+    from transport.keys import Keys
+    from transport.linkauth import LinkAuth
+    from transport.zenoh_bus import Bus
+    from transport.zenoh_session import SessionOptions
+
+    from .slices import AgentSlice, PlantSlice
 
 log = logging.getLogger("rse.net")
 
@@ -42,10 +55,10 @@ class ChildSpec:
     seed: int | None
     run_id: str
     cfg: RunConfig
-    session: Any  # transport.zenoh_session.SessionOptions
+    session: SessionOptions
     agent_id: int | None = None
     out_dir: str | None = None
-    conn: Any = None  # the monitor's progress pipe to the launcher
+    conn: Connection | None = None  # the monitor's progress pipe to the launcher
     log_level: int = logging.WARNING
     watch_parent: bool = False
     # the launcher's built experiment, pickled (no rebuild), or the path of that pickle: a
@@ -54,7 +67,7 @@ class ChildSpec:
     # an agent's slice of the built experiment (agents.net.slices: its node, neighbours, the
     # channel's seeds), pickled, or its path: an agent process reads this and no experiment
     node: bytes | str | None = None
-    dashboard: Any = None  # the monitor's agents.dashboard.DashboardOptions (None: no Rerun output)
+    dashboard: DashboardOptions | None = None  # the monitor's Rerun output (None: none)
     resume: bool = False  # a monitor rejoining a running team (rse monitor --team)
     # several agents in this process (one session, one asyncio task and node each):
     # their ids and slices (as agent_id and node for one agent)
@@ -82,7 +95,7 @@ def group_label(ids: tuple[int, ...] | list[int]) -> str:
 
 
 
-def _open(opts: Any) -> Any:
+def _open(opts: SessionOptions) -> Any:
     from transport.zenoh_session import SessionOptions, one_zenoh_thread, open_session, tcp_endpoint
 
     one_zenoh_thread()  # before the process's first session (ZENOH_RUNTIME)
@@ -138,7 +151,7 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
         close_session(session)
 
 
-def _link_auth(opts: Any, exp: Any) -> Any:
+def _link_auth(opts: SessionOptions, exp: Team | list[AgentSlice]) -> LinkAuth | None:
     """A secure peer's pairwise message keys (:mod:`transport.linkauth`), else None (a
     router team's router binds the estimate keys to the certificates)."""
     tls = opts.tls
@@ -153,7 +166,7 @@ def _link_auth(opts: Any, exp: Any) -> Any:
         raise ScenarioError(str(exc)) from None
 
 
-def _stop_on_signals(loop: Any, watch_parent: bool) -> Any:
+def _stop_on_signals(loop: asyncio.AbstractEventLoop, watch_parent: bool) -> asyncio.Future[None] | None:
     """SIGINT and SIGTERM cancel the running task (and so does the parent's death, with
     ``watch_parent``: returns that watch's task, else None)."""
     task = asyncio.current_task()
@@ -182,7 +195,7 @@ def _stop_on_signals(loop: Any, watch_parent: bool) -> Any:
     return asyncio.ensure_future(watch())
 
 
-async def _agents(spec: ChildSpec, exp: Any, bus: Any, keys: Any) -> Any:
+async def _agents(spec: ChildSpec, exp: AgentSlice | list[AgentSlice], bus: Bus, keys: Keys) -> Any:
     """The agent (or the agents: one task each over this one session) of this process,
     recording their deliveries (agents.deliveries, one file per agent) where there is a run directory."""
     from .agent import run_agent_slice
@@ -202,7 +215,7 @@ async def _agents(spec: ChildSpec, exp: Any, bus: Any, keys: Any) -> Any:
             w.close()
 
 
-async def _monitor(spec: ChildSpec, exp: Any, bus: Any, keys: Any) -> Any:
+async def _monitor(spec: ChildSpec, exp: Experiment, bus: Bus, keys: Keys) -> Any:
     """The monitor: its dashboard, its claim on the run directory, the rounds, and with a
     served viewer the wait after the run until SIGINT / SIGTERM."""
     from .monitor import run_monitor
@@ -217,22 +230,22 @@ async def _monitor(spec: ChildSpec, exp: Any, bus: Any, keys: Any) -> Any:
                 pass
 
     out = Path(spec.out_dir) if spec.out_dir else None
-    dash = None
+    dash, options = None, spec.dashboard
     try:
-        if spec.dashboard is not None:
+        if options is not None:
             from agents.dashboard import Dashboard
 
             # one recording per run: its id is the run id
-            dash = Dashboard(exp, run_id=spec.run_id, options=spec.dashboard)
-            progress("urls", dict(spec.dashboard.urls))
+            dash = Dashboard(exp, run_id=spec.run_id, options=options)
+            progress("urls", dict(options.urls))
         if out is not None:  # who records this run now (the launcher waits for a rejoined monitor)
             claim(out)
         res = await run_monitor(exp, bus, keys, spec.cfg, out_dir=out, progress=progress, dashboard=dash,
                                 resume=spec.resume)
-        if dash is not None and spec.dashboard.serve_web:
+        if dash is not None and options is not None and options.serve_web:
             # the run is over: keep serving the recording until SIGINT / SIGTERM
             bus.close()
-            progress("serving", dict(spec.dashboard.urls))
+            progress("serving", dict(options.urls))
             await asyncio.Event().wait()
         return res
     finally:
@@ -295,7 +308,7 @@ def run_role(spec: ChildSpec) -> int:
         return EXIT_FAILED
 
 
-def _experiment(spec: ChildSpec) -> Any:
+def _experiment(spec: ChildSpec) -> Experiment | PlantSlice:
     """The built experiment (or the plant's slice of it) handed to a plant or monitor process."""
     import pickle
 
@@ -304,7 +317,7 @@ def _experiment(spec: ChildSpec) -> Any:
     return pickle.loads(_blob(spec.experiment))
 
 
-def _agent_slice(spec: ChildSpec) -> Any:
+def _agent_slice(spec: ChildSpec) -> AgentSlice | list[AgentSlice]:
     """The slice of the agent of ``spec`` (a list with several agents)."""
     from .slices import read_slice, read_slices
 

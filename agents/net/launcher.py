@@ -40,7 +40,7 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from agents.net.exits import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 from estimation.errors import ScenarioError
@@ -51,6 +51,16 @@ from .plan import TeamPlan, plan_team
 from .recording import complete_run_dir
 from .startup import PEER_RETRY_MS, child_env
 from .supervisor import Outcome, Supervisor
+
+if TYPE_CHECKING:
+    from multiprocessing.connection import Connection
+
+    from agents.dashboard import DashboardOptions
+    from scenarios.build import Experiment
+    from transport.secure import TlsFiles
+    from transport.zenoh_session import SessionOptions
+
+    from .slices import AgentSlice
 
 log = logging.getLogger("rse.net")
 
@@ -105,7 +115,7 @@ def load_team(path: Path) -> dict[str, Any]:
     return data
 
 
-def session_for(team: dict[str, Any], me: str, *, connect: tuple[str, ...] = (), tls: Any = None) -> Any:
+def session_for(team: dict[str, Any], me: str, *, connect: tuple[str, ...] = (), tls: TlsFiles | None = None) -> SessionOptions:
     """Session options of process ``me`` (e.g. ``"agent 3"``) joining ``team``; ``tls``
     (a :class:`transport.secure.TlsFiles`) for a secure team."""
     from transport.zenoh_session import SessionOptions, any_port, tcp_endpoint
@@ -161,8 +171,9 @@ class Hooks:
     stop_when: Callable[[], bool] | None = None
 
 
-def launch(exp: Any, run_dir: Path, cfg: RunConfig, *, run_id: str | None = None, connect: tuple[str, ...] = (),
-           router: bool = False, secure: Path | None = None, agents_per_process: int = 1, dashboard: Any = None,
+def launch(exp: Experiment, run_dir: Path, cfg: RunConfig, *, run_id: str | None = None, connect: tuple[str, ...] = (),
+           router: bool = False, secure: Path | None = None, agents_per_process: int = 1,
+           dashboard: DashboardOptions | None = None,
            hooks: Hooks = Hooks()) -> LaunchResult:
     """Start and supervise a team for the built experiment ``exp``; returns when every child
     has exited. It composes the team plan (:func:`agents.net.plan.plan_team`: ``connect``,
@@ -204,8 +215,8 @@ def launch(exp: Any, run_dir: Path, cfg: RunConfig, *, run_id: str | None = None
     return _finish(run_dir, exp, plan.run_id, out)
 
 
-def _child_specs(run_dir: Path, exp: Any, plan: TeamPlan, cfg: RunConfig, slices: Any, *,
-                 base: dict[str, Any], conn: Any, dashboard: Any) -> dict[str, ChildSpec]:
+def _child_specs(run_dir: Path, exp: Experiment, plan: TeamPlan, cfg: RunConfig, slices: list[AgentSlice], *,
+                 base: dict[str, Any], conn: Connection, dashboard: DashboardOptions | None) -> dict[str, ChildSpec]:
     """Write the run directory's first files (``manifest.json``, ``design.json``) and what the
     children read (``team/``: the pickled experiment for the monitor, the plant's slice, one
     slice file per agent process), and return each process's :class:`ChildSpec`."""
@@ -243,7 +254,7 @@ def _child_specs(run_dir: Path, exp: Any, plan: TeamPlan, cfg: RunConfig, slices
     return specs
 
 
-def _finish(run_dir: Path, exp: Any, run_id: str, out: Outcome) -> LaunchResult:
+def _finish(run_dir: Path, exp: Experiment, run_id: str, out: Outcome) -> LaunchResult:
     """Complete the run directory after the team ended and decide the exit status."""
     status = EXIT_INTERRUPTED if out.stopping else (EXIT_FAILED if out.failures else EXIT_OK)
     complete_run_dir(run_dir, exp, plant_failed=out.plant_failed, stopping=out.stopping, children=set(out.pids.values()))

@@ -12,12 +12,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from estimation.errors import ScenarioError
 
 from .child import group_label
 from .startup import PEER_RETRY_MS, agent_groups, peer_links
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
+    from transport.secure import TlsFiles
+
+    from .slices import AgentSlice
 
 __all__ = ["TeamPlan", "plan_team", "distinct_ports"]
 
@@ -53,7 +59,7 @@ def distinct_ports(n: int) -> list[int]:
     return ports
 
 
-def plan_team(exp: Any, slices: Any, *, run_id: str, agents_per_process: int = 1, connect: tuple[str, ...] = (),
+def plan_team(exp: Experiment, slices: list[AgentSlice], *, run_id: str, agents_per_process: int = 1, connect: tuple[str, ...] = (),
               router: bool = False, secure: Path | None = None) -> TeamPlan:
     """The plan of a team for ``exp`` (``slices``: the agents' slices, whose links decide
     which peers connect to which). ``router``: the team starts a router on a free loopback
@@ -80,8 +86,8 @@ def plan_team(exp: Any, slices: Any, *, run_id: str, agents_per_process: int = 1
     return TeamPlan(run_id, names, groups, endpoints, (), sessions, None, tls, secure)
 
 
-def _identities(exp: Any, names: tuple[str, ...], *, run_id: str, router: bool, connect: tuple[str, ...],
-                secure: Path | None) -> tuple[dict[str, Any], Any]:
+def _identities(exp: Experiment, names: tuple[str, ...], *, run_id: str, router: bool, connect: tuple[str, ...],
+                secure: Path | None) -> tuple[dict[str, TlsFiles], dict[str, Any] | None]:
     """The TLS identity of each process (and of the router) and a secure peer's ingress rules."""
     if secure is None:
         return {}, None
@@ -99,7 +105,7 @@ def _router_endpoint(secure: Path | None) -> str:
     return secure_endpoint(ep) if secure is not None else ep
 
 
-def _peer_sessions(names: tuple[str, ...], links: dict[str, set[str]], tls: dict[str, Any], acl: Any, *,
+def _peer_sessions(names: tuple[str, ...], links: dict[str, set[str]], tls: dict[str, TlsFiles], acl: dict[str, Any] | None, *,
                    tls_links: bool) -> tuple[dict[str, str], dict[str, Any]]:
     """Peer mode: a loopback endpoint per process and its session.
 

@@ -12,7 +12,10 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
 
 log = logging.getLogger("rse.net")
 
@@ -28,7 +31,7 @@ def claim(out: Path) -> None:
     (out / MONITOR_PID).write_text(f"{os.getpid()}\n")
 
 
-def release(out: Path, exp: Any) -> None:
+def release(out: Path, exp: Experiment) -> None:
     """This monitor stops recording ``out``; stopped before its rounds began, it leaves what
     earlier monitors recorded, or a summary header (``complete: false``)."""
     if not (out / "summary.json").exists():
@@ -41,7 +44,7 @@ def release(out: Path, exp: Any) -> None:
             (out / MONITOR_PID).unlink()
 
 
-def complete_run_dir(run_dir: Path, exp: Any, *, plant_failed: str | None, stopping: bool, children: set[int]) -> None:
+def complete_run_dir(run_dir: Path, exp: Experiment, *, plant_failed: str | None, stopping: bool, children: set[int]) -> None:
     """Leave the run directory consistent whatever happened (:mod:`agents.recorder`).
 
     A monitor that rejoined the team (``rse monitor --team``, not a child) is given

@@ -15,15 +15,19 @@ Two topologies, one set of certificates (``rse certs DIR``):
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from estimation.errors import ScenarioError
+
+if TYPE_CHECKING:
+    from transport.secure import TlsFiles
 
 __all__ = ["identities", "tls_identity", "peer_acl"]
 
 
-def tls_identity(directory: Path, name: str) -> Any:
+def tls_identity(directory: Path, name: str) -> TlsFiles:
     """The TLS identity of process ``name`` (``"agent 3"`` -> ``agent-3``) in ``directory``;
     a missing file is a :class:`ScenarioError` naming it."""
     from transport.secure import tls_files
@@ -34,12 +38,12 @@ def tls_identity(directory: Path, name: str) -> Any:
         raise ScenarioError(str(exc)) from None
 
 
-def identities(directory: Path, names: list[str], *, router: bool) -> dict[str, Any]:
+def identities(directory: Path, names: list[str], *, router: bool) -> dict[str, TlsFiles]:
     """The identity of each process of ``names`` (and of ``router`` if the team has one)."""
     return {nm: tls_identity(directory, nm) for nm in (["router"] if router else []) + names}
 
 
-def peer_acl(directory: Path | str, run_id: str = "*", agent_ids: Any = None) -> dict[str, Any]:
+def peer_acl(directory: Path | str, run_id: str = "*", agent_ids: Iterable[int] | None = None) -> dict[str, Any]:
     """Zenoh's ``access_control`` of one secure peer: default deny, and for each identity of
     the team (``plant``, ``monitor``, ``agent-i`` for ``i`` in ``agent_ids``, default: the
     ``agent-i.pem`` certificates in ``directory``) what this peer accepts from it (ingress)

@@ -38,7 +38,15 @@ import sys
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from multiprocessing.connection import Connection
+
+    from scenarios.build import Experiment
+    from transport.keys import Keys
+    from transport.zenoh_bus import Bus
+    from transport.zenoh_session import SessionOptions
 
 _STAMP = struct.Struct("<q")
 
@@ -61,7 +69,7 @@ class Sizes:
     reads: tuple[tuple[tuple[int, int], ...], ...] = ()
 
 
-def sizes_for(exp: Any) -> Sizes:
+def sizes_for(exp: Experiment) -> Sizes:
     """The runtime's encoded message sizes for experiment ``exp``."""
     import numpy as np
 
@@ -102,7 +110,7 @@ def _payload(size: int, k: int) -> bytes:
     return _STAMP.pack(k) + bytes(max(0, size - 8))
 
 
-async def _joined(q: asyncio.Queue, bus: Any, keys: Any, me: int, need: set[str]) -> AsyncIterator[tuple[str, bytes]]:
+async def _joined(q: asyncio.Queue, bus: Bus, keys: Keys, me: int, need: set[str]) -> AsyncIterator[tuple[str, bytes]]:
     """An agent's data items, after its join: it notes the liveliness tokens it sees, sends
     ``ready`` once every process of ``need`` is seen, and yields every other item."""
     seen: set[str] = set()
@@ -122,8 +130,8 @@ async def _joined(q: asyncio.Queue, bus: Any, keys: Any, me: int, need: set[str]
         yield key, p
 
 
-async def _minimal(role: str, idx: int, sizes: Sizes, rounds: int, keys: Any, bus: Any, q: asyncio.Queue,
-                   conn: Any) -> None:
+async def _minimal(role: str, idx: int, sizes: Sizes, rounds: int, keys: Keys, bus: Bus, q: asyncio.Queue,
+                   conn: Connection | None) -> None:
     """The minimal lockstep skeleton: a clock ticks once per round (8 bytes); each agent,
     once it holds its in-neighbours' round k-1 estimates, publishes its estimate (the
     scenario's estimate size) and an 8-byte done; the clock ticks again when all are done."""
@@ -149,7 +157,8 @@ async def _minimal(role: str, idx: int, sizes: Sizes, rounds: int, keys: Any, bu
                     got += 1
         elapsed = time.perf_counter() - t0
         bus.publish(tick, _STAMP.pack(-1))
-        conn.send({"rounds": rounds, "elapsed": elapsed, "rounds_per_s": rounds / elapsed})
+        if conn is not None:  # the plant reports to the launcher
+            conn.send({"rounds": rounds, "elapsed": elapsed, "rounds_per_s": rounds / elapsed})
         await asyncio.sleep(0.05)
         return
     me, ins = ids[idx], sizes.in_ids[idx]
@@ -177,7 +186,7 @@ async def _minimal(role: str, idx: int, sizes: Sizes, rounds: int, keys: Any, bu
             tick_k = None
 
 
-async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: Any, conn: Any,
+async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: SessionOptions, conn: Connection | None,
                 minimal: bool = False) -> None:
     from transport.keys import Keys
     from transport.zenoh_bus import ZenohBus
@@ -201,7 +210,7 @@ async def _main(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: 
         close_session(session)
 
 
-async def _plant(sizes: Sizes, rounds: int, keys: Any, bus: Any, q: asyncio.Queue, conn: Any) -> None:
+async def _plant(sizes: Sizes, rounds: int, keys: Keys, bus: Bus, q: asyncio.Queue, conn: Connection | None) -> None:
     """The full-pattern plant: waits for every agent's ready and the monitor, then ``rounds``
     rounds of truth and measurements, each ended by every agent's done; sends the rate."""
     ids = sizes.agents
@@ -234,11 +243,12 @@ async def _plant(sizes: Sizes, rounds: int, keys: Any, bus: Any, q: asyncio.Queu
     for i in range(N):
         bus.publish(loc[i], _STAMP.pack(-1))
     bus.publish(truth, _STAMP.pack(-1))
-    conn.send({"rounds": rounds, "elapsed": elapsed, "rounds_per_s": rounds / elapsed})
+    if conn is not None:  # the plant reports to the launcher
+        conn.send({"rounds": rounds, "elapsed": elapsed, "rounds_per_s": rounds / elapsed})
     await asyncio.sleep(0.05)
 
 
-async def _monitor(keys: Any, bus: Any, q: asyncio.Queue) -> None:
+async def _monitor(keys: Keys, bus: Bus, q: asyncio.Queue) -> None:
     """The full-pattern monitor: hears the truth and the done reports until the plant's stop."""
     bus.subscribe(keys.plant_truth(), q)
     bus.subscribe(keys.ctl_pattern("done"), q)
@@ -251,7 +261,7 @@ async def _monitor(keys: Any, bus: Any, q: asyncio.Queue) -> None:
             break
 
 
-async def _agent(idx: int, sizes: Sizes, keys: Any, bus: Any, q: asyncio.Queue) -> None:
+async def _agent(idx: int, sizes: Sizes, keys: Keys, bus: Bus, q: asyncio.Queue) -> None:
     """A full-pattern agent: its round ``k`` once the measurement of ``k`` and its
     in-neighbours' (and an omniscient adversary's needed) messages of ``k - 1`` are in."""
     ids = sizes.agents
@@ -303,7 +313,7 @@ async def _agent(idx: int, sizes: Sizes, keys: Any, bus: Any, q: asyncio.Queue) 
             meas_k = None
 
 
-def _child(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: Any, conn: Any, minimal: bool = False) -> None:
+def _child(role: str, idx: int, sizes: Sizes, rounds: int, run: str, opts: SessionOptions, conn: Connection | None, minimal: bool = False) -> None:
     from transport.event_loop import run as run_loop
 
     run_loop(_main(role, idx, sizes, rounds, run, opts, conn, minimal))  # the runtime's event loop
