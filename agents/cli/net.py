@@ -45,16 +45,18 @@ def _run_options(fn: Callable) -> Callable:
                       help="Scenario seconds an agent joining a running team listens before it publishes.")(fn)
     fn = click.option("--startup-timeout", type=click.FloatRange(min=0.1), default=60.0, show_default=True,
                       help="Seconds to wait for the team to assemble.")(fn)
+    fn = click.option("--sign", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
+                      help="Sign every estimate with the keys of `rse certs DIR`: equivocation becomes evidence.")(fn)
     return fn
 
 
 def _config(mode: str, rate: float | None, deadline: float, startup_timeout: float, save_estimates: bool = False,
-            warmup: float = 3.0):
+            warmup: float = 3.0, sign: str | None = None):
     from ..net.config import RunConfig
 
     try:
         return RunConfig(mode=mode, rate=rate, deadline=deadline, startup_timeout=startup_timeout,
-                         save_estimates=save_estimates, warmup=warmup)
+                         save_estimates=save_estimates, warmup=warmup, sign=sign)
     except ValueError as exc:
         raise ScenarioError(str(exc)) from None
 
@@ -82,7 +84,6 @@ def _print_outcome(summary: dict[str, Any] | None, title: str, run_dir: Path | N
         console.print(expectations_table(results))
     if "evidence" in summary:
         from .sim import convicted_line
-
         console.print(convicted_line(summary["evidence"], run_dir or Path("RUN_DIR")), soft_wrap=True)
     rej = summary.get("rejected") or {}
     if rej:
@@ -115,8 +116,6 @@ def _print_outcome(summary: dict[str, Any] | None, title: str, run_dir: Path | N
 @click.option("--secure", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
               help="Mutual TLS on every link, certificates from `rse certs DIR`; every peer enforces its own "
                    "ingress rules (with --router or --connect: the router does).")
-@click.option("--sign", type=click.Path(file_okay=False, path_type=Path), default=None, metavar="DIR",
-              help="Sign every estimate with the keys of `rse certs DIR`; equivocation becomes evidence (evidence.jsonl).")
 @click.option("--run-id", default=None, help="Run id in every key expression (default: NAME-RANDOM).")
 @click.option("--agents-per-process", type=click.IntRange(min=1), default=1, show_default=True, metavar="N",
               help="Host N agents in each agent process (one Zenoh session, one task per agent): large teams.")
@@ -298,7 +297,8 @@ def _role_spec(role: str, label: str, scenario: Path | None, overrides: tuple[st
         others = eps or tuple(v for k, v in data.get("endpoints", {}).items() if k != label)
         session = _peer_options(lst, others, tls, run_id)
     warn_plain((*session.connect, *(session.listen or ())), tls)
-    cfg = _config(mode, rate, deadline, startup_timeout, extra.pop("save_estimates", False), warmup)
+    cfg = _config(mode, rate, deadline, startup_timeout, extra.pop("save_estimates", False), warmup,
+                  sign_dir(extra.pop("sign", None) or (Path(data["sign"]) if data.get("sign") else None)))
     # built here (a bad scenario is exit status 2 with the usual message) and handed to the
     # role: the role process reads what it is given, it builds nothing
     built = None

@@ -95,7 +95,7 @@ class Team:
             "run_id": self.run_id, "endpoints": self.endpoints, "transport": self.mode, "connect": list(self.connect),
             "scenario": self.scenario, "overrides": list(self.overrides), "seed": self.seed,
             "mode": self.cfg.mode, "rate": self.cfg.rate, "deadline": self.cfg.deadline, "pids": self.pids,
-            "router": self.router, "secure": self.secure,
+            "router": self.router, "secure": self.secure, "sign": self.cfg.sign,
         }
 
 

@@ -324,10 +324,10 @@ def test_plain_mode_says_what_it_is_off_loopback():
 
 @pytest.mark.slow
 def test_single_roles_are_secure_peers_with_explicit_endpoints(certs, tmp_path):
-    """rse plant, rse monitor and five rse agent processes, each with --secure, its own
-    --listen tls/ endpoint and the others' as --connect (as across hosts): the team runs in
-    lockstep, nothing is rejected (every estimate's pairwise tag checks) and every estimate
-    equals rse simulate's."""
+    """rse plant, rse monitor and five rse agent processes, each with --secure and --sign, its
+    own --listen tls/ endpoint and the others' as --connect (as across hosts): the team runs
+    in lockstep, nothing is rejected (every estimate's pairwise tag checks), the signed copies
+    are compared and agree, and every estimate equals rse simulate's."""
     from agents.api import load_experiment
     from agents.simulate import simulate
     from transport.zenoh_session import free_tcp_port
@@ -343,7 +343,7 @@ def test_single_roles_are_secure_peers_with_explicit_endpoints(certs, tmp_path):
             role, *aid = nm.split()
             args = [role, *(["--id", aid[0]] if aid else []), str(LKS), "--run-id", "p2p-roles", "--secure", str(certs),
                     "--listen", eps[nm], *(a for other in names if other != nm for a in ("--connect", eps[other])),
-                    "--deadline", "30"]
+                    "--deadline", "30", "--sign", str(certs)]
             for o in ov:
                 args += ["--set", o]
             if role == "monitor":
@@ -356,6 +356,9 @@ def test_single_roles_are_secure_peers_with_explicit_endpoints(certs, tmp_path):
         ps.kill_all()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["complete"] and summary["rejected"] == {}, summary["rejected"]
+    # --sign: every estimate signed, the regular receivers' copies compared, all equal
+    ev = summary["evidence"]
+    assert ev["convicted"] == {} and ev["bad_signatures"] == ev["verifications"] == 0 and ev["copies"] > 1000, ev
     exp, _ = load_experiment(LKS, ov, None)
     ref = simulate(exp, keep_trajectories=True)
     assert float(np.max(np.abs(np.load(out / "estimates.npy") - ref.estimates))) <= 1e-12
