@@ -427,6 +427,8 @@ class MonitorProcess(Role["Experiment"]):
         self._close_rounds(final=True)
         agents_alive = lambda: {str(a) for (r, a) in self.alive if r == "agent"}
         await self.wait_for(lambda: "plant" in self.stats and agents_alive() <= set(self.stats), cfg.linger)
+        if not self.synced:  # restarted, it never had a whole round: the record is incomplete (_abort)
+            raise TransportError(f"this monitor did not rejoin the team before its last round {K}")
         return self._finish()
 
     def _finish(self, *, complete: bool = True, reason: str | None = None) -> MonitorResult:

@@ -2,6 +2,7 @@
 processes. Lockstep equals the simulator; addressed payloads; bad bytes are counted."""
 
 import asyncio
+import json
 from dataclasses import replace
 
 import msgpack
@@ -203,3 +204,34 @@ def test_an_lfre_agent_sends_its_estimate_once_when_the_payload_is_the_estimate(
     done = {aid: sum(k.endswith(f"/ctl/done/{aid}") for k in sent) for aid in exp.agent_ids}
     assert set(done.values()) == {21}  # one report per round, rounds 0..20
     assert set(per_agent.values()) == ({0} if merged else {21}), per_agent
+
+
+def test_a_restarted_monitor_that_never_rejoins_says_its_record_is_incomplete(tmp_path):
+    """A monitor restarted into a running team that stops before it had one whole round
+    (no agent's report reached it) records nothing and says so: the summary is incomplete,
+    with the reason, not a complete record of the rounds before it."""
+    from agents.net.monitor import MonitorProcess
+    from agents.net.wire import _msg
+    from estimation.errors import TransportError
+    from transport.codec import PLANT_ID
+
+    exp, _ = load_experiment(SCENARIOS / "lee_kim_shim.toml", LKS, None)
+    hub, keys = InMemoryHub(), Keys("r")
+
+    async def main():
+        plant = hub.bus()
+        plant.announce(keys.alive("plant", 0))
+        mon = MonitorProcess(exp, hub.bus(), keys, RunConfig(deadline=0.2, linger=0.2), out_dir=tmp_path / "run",
+                             resume=True)
+        task = asyncio.create_task(mon.run())
+        await asyncio.sleep(0.2)
+        for k in range(5):  # the truth of some rounds, no agent's report
+            plant.publish(keys.plant_truth(), _msg("truth", PLANT_ID, k, {"x": np.zeros(exp.n)}))
+        plant.publish(keys.ctl("stop", PLANT_ID), _msg("ctl", PLANT_ID, 4, {}))
+        return await asyncio.wait_for(task, 30)
+
+    with pytest.raises(TransportError, match="did not rejoin the team before its last round 4"):
+        asyncio.run(main())
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["complete"] is False
+    assert summary["reason"].endswith("this monitor did not rejoin the team before its last round 4")
