@@ -169,11 +169,15 @@ class Convictions:
         path.write_text("".join(json.dumps(r) + "\n" for r in self.records))
         return path
 
-    def report(self, summary: dict[str, Any], run_dir: Path | None) -> None:
-        """Into ``summary`` (``evidence``: :meth:`summary`) and ``run_dir/evidence.jsonl``."""
+    def report(self, summary: dict[str, Any], run_dir: Path | None, dashboard: Any = None) -> None:
+        """Into ``summary`` (``evidence``: :meth:`summary`), ``run_dir/evidence.jsonl`` and the
+        dashboard's ``events/convictions`` (at each round of conviction)."""
         summary["evidence"] = self.summary()
         if run_dir is not None:
             self.write(run_dir)
+        for j, k in self.convicted.items():
+            if hasattr(dashboard, "log_conviction"):
+                dashboard.log_conviction(j, k)
 
     def summary(self) -> dict[str, Any]:
         """``summary.json``'s ``evidence`` (as the simulator's, plus the copies compared)."""

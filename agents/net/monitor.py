@@ -472,7 +472,7 @@ class MonitorProcess(Role["Experiment"]):
         if self.dashboard is not None and hasattr(self.dashboard, "log_health"):
             self.dashboard.log_health(summary["health"], mon.last_round, rate_line(summary))
         if self.convictions is not None:
-            self.convictions.report(summary, self.out_dir)
+            self.convictions.report(summary, self.out_dir, self.dashboard)
         if self.out_dir is not None:
             from agents.recorder import write_run
 

@@ -53,8 +53,8 @@ def test_a_networked_equivocator_is_convicted_within_2_rounds(keys, tmp_path):
     """mitra_cells.toml in lockstep, agent 5 equivocating from a round that differs per seed,
     plain peers and secure peers: agent 5 and nobody else is convicted within 2 rounds of
     its first equivocation, the one record verifies offline and every edit of it fails, the
-    estimates equal rse simulate's (signing changes no value), and rse verify-evidence
-    accepts the file and rejects an edited copy."""
+    estimates equal rse simulate's (signing changes no value), the dashboard marks the
+    conviction, and rse verify-evidence accepts the file and rejects an edited copy."""
     from agents.api import load_experiment
     from agents.cli import cli
     from agents.evidence import verify_file, verify_record
@@ -66,7 +66,7 @@ def test_a_networked_equivocator_is_convicted_within_2_rounds(keys, tmp_path):
         start = 5 + 4 * seed
         out = tmp_path / f"run{seed}"
         args = ["run", str(MITRA), "--sign", str(keys), "--seed", str(seed), "--out", str(out), "--no-progress",
-                "--no-rerun", "--save-estimates", "--deadline", "30"]
+                "--save-estimates", "--deadline", "30", *(["--no-rerun"] if secure else [])]  # a recording: plain
         for ov in _overrides(start):
             args += ["--set", ov]
         code, so, se = _run(args + (["--secure", str(keys)] if secure else []))
@@ -88,6 +88,7 @@ def test_a_networked_equivocator_is_convicted_within_2_rounds(keys, tmp_path):
         exp, _ = load_experiment(MITRA, tuple(_overrides(start)), seed)
         ref = simulate(exp, keep_trajectories=True)
         assert float(np.max(np.abs(np.load(out / "estimates.npy") - ref.estimates))) == 0.0
+    _dashboard_marks(out / "recording.rrd", k)
     ok = CliRunner().invoke(cli, ["verify-evidence", str(out / "evidence.jsonl"), "--certs", str(keys)])
     assert ok.exit_code == 0 and f"verified: agent {BYZ} equivocated at stamp {start}" in ok.output, ok.output
     rec["messages"][1]["x"][0] += 1.0
@@ -95,6 +96,20 @@ def test_a_networked_equivocator_is_convicted_within_2_rounds(keys, tmp_path):
     edited.write_text(json.dumps(rec) + "\n")
     bad = CliRunner().invoke(cli, ["verify-evidence", str(edited), "--certs", str(keys)])
     assert bad.exit_code == 1 and "line 1: message 2: the signature does not verify" in bad.output, bad.output
+
+
+def _dashboard_marks(rrd: Path, k: int) -> None:
+    """The monitor's recording marks the conviction at its round (as rse simulate's does)."""
+    try:
+        import datafusion  # noqa: F401  (reading .rrd files needs rerun-sdk[catalog], the test extra)
+        import rerun  # noqa: F401
+    except ImportError:
+        return
+    from tests.agents.test_dashboard import read_rrd, rows
+
+    text = rows(read_rrd(rrd), "/events/convictions:TextLog:text")
+    assert [int(x) for x in text["k"]] == [k]
+    assert f"agent {BYZ} convicted of equivocation" in str(text.iloc[0, 1])
 
 
 def test_sign_names_a_directory_without_keys(tmp_path):
