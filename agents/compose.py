@@ -39,9 +39,12 @@ import os
 import shlex
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from estimation.errors import ScenarioError
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
 
 __all__ = ["DEFAULT_IMAGE", "ROUTER_PORT", "WEB_PORT", "GRPC_PORT", "default_run_id", "compose_spec", "render",
            "role_images", "secure_mounts", "write_team"]
@@ -79,7 +82,7 @@ def role_images(image: str) -> dict[str, str]:
     return {"full": image, "agent": f"{name}-agent{tag}", "monitor": f"{name}-monitor{tag}"}
 
 
-def write_team(exp: Any, out: Path, *, scenario: str, run_id: str, connect: str | None, overrides: Sequence[str] = (),
+def write_team(exp: Experiment, out: Path, *, scenario: str, run_id: str, connect: str | None, overrides: Sequence[str] = (),
                seed: int | None = None) -> Path:
     """Write ``out/team.json`` and, in ``out/team/``, each agent's slice, the plant's slice
     (``plant.pkl``) and the built experiment (``experiment.pkl``) for a team of ``exp``

@@ -25,13 +25,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from estimation.lti import dense
 
 from .monitor import plot_rows
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
 
 MAP_FRAMES = 2000
 REGULAR_COLORS = [
@@ -59,7 +62,7 @@ class DashboardOptions:
     urls: dict[str, str] = field(default_factory=dict)
 
 
-def agent_layout(exp: Any) -> tuple[np.ndarray | None, np.ndarray]:
+def agent_layout(exp: Experiment) -> tuple[np.ndarray | None, np.ndarray]:
     """Map positions: ``(locations (L, 2) or None, static agent positions (N, 2))``.
 
     Static agents without a map sit on a circle; an agent reading located banks sits at
@@ -82,7 +85,7 @@ def agent_layout(exp: Any) -> tuple[np.ndarray | None, np.ndarray]:
 class Dashboard:
     """Streams a run to Rerun. Use as a context manager; ``log_chunk`` per chunk of rounds."""
 
-    def __init__(self, exp: Any, *, run_id: str, options: DashboardOptions) -> None:
+    def __init__(self, exp: Experiment, *, run_id: str, options: DashboardOptions) -> None:
         import rerun as rr
         import rerun.blueprint as rrb
 

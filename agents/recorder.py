@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
@@ -32,6 +32,9 @@ import pyarrow as pa
 from .columns import column, repeated_strings
 from .monitor import Monitor
 from .rounds import regular_mask
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
 
 PARTIAL = "metrics.partial"
 
@@ -45,7 +48,7 @@ SCHEMA = pa.schema([
 class MetricsStream:
     """One segment of the partial metrics stream (see the module docstring)."""
 
-    def __init__(self, run_dir: Path, exp: Any, regular: np.ndarray) -> None:
+    def __init__(self, run_dir: Path, exp: Experiment, regular: np.ndarray) -> None:
         d = Path(run_dir) / PARTIAL
         d.mkdir(parents=True, exist_ok=True)
         n = 0
@@ -149,7 +152,7 @@ def drop_partial(run_dir: str | Path) -> None:
     shutil.rmtree(Path(run_dir) / PARTIAL, ignore_errors=True)
 
 
-def write_run(run_dir: Path, exp: Any, mon: Monitor, regular: np.ndarray, summary: dict[str, Any]) -> None:
+def write_run(run_dir: Path, exp: Experiment, mon: Monitor, regular: np.ndarray, summary: dict[str, Any]) -> None:
     """``metrics.parquet`` (and the diagnostics and traces), then ``summary.json``; the
     partial stream is removed once both are written."""
     from .rundir import write_json, write_metrics
@@ -159,7 +162,7 @@ def write_run(run_dir: Path, exp: Any, mon: Monitor, regular: np.ndarray, summar
     drop_partial(run_dir)
 
 
-def incomplete_summary(exp: Any, mon: Monitor | None, regular: np.ndarray, *, reason: str,
+def incomplete_summary(exp: Experiment, mon: Monitor | None, regular: np.ndarray, *, reason: str,
                        links: dict | None = None, rejected: dict | None = None) -> dict[str, Any]:
     """``summary.json`` of a run that ended early: the full summary of the rounds recorded
     (none: only the header), ``complete: false``, ``reason``, ``last_round``."""
@@ -171,7 +174,7 @@ def incomplete_summary(exp: Any, mon: Monitor | None, regular: np.ndarray, *, re
             "agents": {}, "worst_regular": {}, "links": links or {}, "rejected": rejected or {}}
 
 
-def write_incomplete(run_dir: Path, exp: Any, mon: Monitor | None, regular: np.ndarray, *, reason: str,
+def write_incomplete(run_dir: Path, exp: Experiment, mon: Monitor | None, regular: np.ndarray, *, reason: str,
                      links: dict | None = None, rejected: dict | None = None) -> None:
     """The files of a run that ended early: with rounds recorded in ``mon``, as
     :func:`write_run` (``summary.json`` with ``complete: false``); without (``mon`` None or
@@ -194,7 +197,7 @@ class Recorder:
     Pass it to a driver where a dashboard goes; after a complete run call :meth:`done`
     (the final files are written by the caller, e.g. :meth:`agents.api.RunResult.save`)."""
 
-    def __init__(self, run_dir: str | Path, exp: Any, *, dashboard: Any = None, monitor: Monitor | None = None) -> None:
+    def __init__(self, run_dir: str | Path, exp: Experiment, *, dashboard: Any = None, monitor: Monitor | None = None) -> None:
         self.run_dir = Path(run_dir)
         self.exp = exp
         self.dashboard = dashboard
@@ -233,7 +236,7 @@ class Recorder:
         write_incomplete(self.run_dir, self.exp, mon, self.regular, reason=reason, links=links, rejected=rejected)
 
 
-def salvage(run_dir: str | Path, exp: Any, *, reason: str) -> bool:
+def salvage(run_dir: str | Path, exp: Experiment, *, reason: str) -> bool:
     """Complete a run directory whose monitor was killed: ``metrics.parquet`` and
     ``summary.json`` (``complete: false``) from the partial stream. Returns whether there
     was something to salvage (a directory with a ``summary.json`` is left alone)."""

@@ -10,13 +10,16 @@ import json
 import uuid
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from estimation.errors import ScenarioError
 
 from .runs import RunResult, _override_strings, deferred_signals, ended_by, load
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
 
 
 def default_out(run_dir: Path) -> Path:
@@ -61,7 +64,7 @@ def replay_experiment(run_dir: Path, overrides: Iterable[str] = ()) -> Any:
                 source=str(manifest.get("source") or run_dir / "manifest.json"))
 
 
-def reported(run_dir: Path, exp: Any) -> np.ndarray | None:
+def reported(run_dir: Path, exp: Experiment) -> np.ndarray | None:
     """``(rounds, N)`` bool: the agent-rounds whose estimate the run's monitor recorded (a
     finite error in ``metrics.parquet``, else in its partial stream); None: no metrics."""
     import pyarrow.parquet as pq

@@ -18,9 +18,12 @@ sweep's client) writes the file, so a run on a remote worker writes nothing ther
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
 
 
 def run_label(values: tuple[tuple[str, Any], ...], seed: int) -> str:
@@ -34,7 +37,7 @@ def _log10(a: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(out), out, np.nan)
 
 
-def recording_bytes(exp: Any, sim: Any, *, application_id: str, recording_id: str,
+def recording_bytes(exp: Experiment, sim: Any, *, application_id: str, recording_id: str,
                     values: tuple[tuple[str, Any], ...], seed: int, point: str) -> bytes:
     """The ``.rrd`` bytes of one finished in-process run ``sim`` of ``exp``."""
     import rerun as rr

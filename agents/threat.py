@@ -12,7 +12,10 @@ that show what happens beyond the model are meant to run).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
 
 __all__ = ["beyond_threat_model"]
 
@@ -21,7 +24,7 @@ def _ids(values: list[int]) -> str:
     return ", ".join(str(v) for v in sorted(values))
 
 
-def beyond_threat_model(exp: Any) -> str | None:
+def beyond_threat_model(exp: Experiment) -> str | None:
     """One line saying how ``exp``'s ``[[attacks]]`` exceed its algorithm's threat model, or None.
 
     Parameters
@@ -68,7 +71,7 @@ def beyond_threat_model(exp: Any) -> str | None:
     return "attacks beyond the threat model: " + "; ".join(problems) + ": the paper's guarantee does not cover this run"
 
 
-def _most_byzantine_in_neighbours(exp: Any, byz: list[int]) -> tuple[int, int] | None:
+def _most_byzantine_in_neighbours(exp: Experiment, byz: list[int]) -> tuple[int, int] | None:
     """(regular agent id, its number of Byzantine in-neighbours) for the agent that hears most."""
     index = {a: i for i, a in enumerate(exp.agent_ids)}
     bad = {index[a] for a in byz if a in index}

@@ -4,11 +4,14 @@ built, and the conditions ``rse check`` reports."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import numpy as np
 
 from estimation.lti import ContinuousLTI
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
 
 # Stream tags for seeded generators: every random quantity has its own stream derived
 # from (run seed, tag, index), so both drivers draw identical numbers in any order.
@@ -84,7 +87,7 @@ S = TypeVar("S")
 STRATEGIES = ("constant", "huge", "omission", "equivocation", "false_stamp", "replay", "crash", "cancellation")
 
 
-def estimator_section(exp: Any, cls: type[S]) -> S:
+def estimator_section(exp: Experiment, cls: type[S]) -> S:
     """The scenario's ``[estimator]`` table as the plugin's own section type ``cls`` (the
     schema types it as the union of every plugin's); a plugin asked for another algorithm's
     experiment is a bug, said as a ``TypeError``."""
@@ -124,7 +127,7 @@ class Condition:
     detail: str
 
 
-def checked_design(exp: Any, design: Any, label: str) -> tuple[Any, list[Condition]]:
+def checked_design(exp: Experiment, design: Any, label: str) -> tuple[Any, list[Condition]]:
     """The design ``rse check`` reports on: the experiment's own, else ``design(exp,
     check=True)``. A design that fails is one failed condition named ``label``:
     returns ``(None, [that condition])``, else ``(design, [])``."""

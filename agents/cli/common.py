@@ -11,7 +11,7 @@ import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -20,6 +20,9 @@ from estimation.errors import RSEError, ScenarioError
 
 from ..api import beyond_threat_model, load_experiment
 
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
+
 __all__ = [
     "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT", "EXIT_EXPECTATION", "EXIT_INTERRUPTED",
     "handle_errors", "scenario_options", "rerun_options", "dashboard_options", "wait_while_serving",
@@ -27,7 +30,7 @@ __all__ = [
 ]
 
 
-def warn_threat_model(exp: Any) -> None:
+def warn_threat_model(exp: Experiment) -> None:
     """One warning line on stderr when the scenario's attacks exceed its threat model."""
     line = beyond_threat_model(exp)
     if line is not None:

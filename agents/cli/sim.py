@@ -6,7 +6,7 @@ import contextlib
 import sys
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -24,6 +24,9 @@ from .common import (
     wait_while_serving,
     warn_threat_model,
 )
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
 
 
 @click.command()
@@ -93,7 +96,7 @@ def simulate(scenario: Path, overrides: tuple[str, ...], seed: int | None, out: 
                                 + "; ".join(r.label for r in failed))
 
 
-def _watch(exp: Any, sign: Path | None, run_id: str, ignore_convicted: bool) -> Any:
+def _watch(exp: Experiment, sign: Path | None, run_id: str, ignore_convicted: bool) -> Any:
     if sign is None:
         if ignore_convicted:
             raise ScenarioError("--ignore-convicted needs --sign DIR")

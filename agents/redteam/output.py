@@ -8,9 +8,12 @@ import math
 import uuid
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .space import MetricSpec
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
 
 __all__ = ["paper_bound", "write_table", "write_scenario", "replay", "figure", "LiveView"]
 
@@ -25,7 +28,7 @@ def _number(detail: str) -> float | None:
         return None
 
 
-def paper_bound(exp: Any, spec: MetricSpec) -> dict[str, Any] | None:
+def paper_bound(exp: Experiment, spec: MetricSpec) -> dict[str, Any] | None:
     """The bound ``rse check`` prints for the scenario that the metric is compared with:
     ``{"name", "value", "applies", "condition"}``; None where the paper gives none for it.
 
@@ -33,11 +36,14 @@ def paper_bound(exp: Any, spec: MetricSpec) -> dict[str, Any] | None:
     for the Lyapunov variant) on the error norms. Mitra et al.: Theorem 2's mean-square
     stability, i.e. convergence: a final relative error above 1e-6 breaks it. ``applies``
     is False for the non-resilient variants (the bound is the resilient estimator's)."""
+    from scenarios.plugins.lee_kim_shim import LeeKimShimEstimator
+    from scenarios.plugins.mitra import MitraEstimator
+
     from .. import runs  # the one-run core (agents.api re-exports it)
 
     est = exp.scenario.estimator
     conds = runs.check(exp)
-    if est.algorithm == "lee_kim_shim" and spec.metric in ("error_inf", "error_2"):
+    if isinstance(est, LeeKimShimEstimator) and spec.metric in ("error_inf", "error_2"):
         want = "Theorem 3" if est.variant == "lyapunov" else "Theorem 1 bound"
         for c in conds:
             if c.name.startswith(want) and _number(c.detail) is not None:
@@ -48,7 +54,7 @@ def paper_bound(exp: Any, spec: MetricSpec) -> dict[str, Any] | None:
                     value = float(theorem1_bound(exp.Adj, est.gamma))
                 return {"name": c.name, "short": want.replace(" bound", "") + " bound", "value": value,
                         "applies": est.variant != "linear", "condition": None}
-    if est.algorithm == "lfre" and spec.metric == "relative_error_2" and spec.over == "final":
+    if isinstance(est, MitraEstimator) and spec.metric == "relative_error_2" and spec.over == "final":
         mss = next((c for c in conds if c.name.startswith("MSS")), None)
         return {"name": "Theorem 2 (mean-square stability): every regular agent converges; "
                         "a final relative error above this breaks it",

@@ -17,17 +17,20 @@ import time
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .space import MetricSpec, Space, active_components
 from .warm import warm_start
 
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
+
 __all__ = ["evaluate", "metric_value", "Evaluator", "search"]
 
 
-def metric_value(exp: Any, res: Any, spec: MetricSpec) -> float:
+def metric_value(exp: Experiment, res: Any, spec: MetricSpec) -> float:
     """``spec``'s value for a finished in-process run (the largest over the regular agents,
     the rounds of ``spec.over`` and the block(s); NaN when every value is NaN)."""
     from ..summary import _nanmax, _rounds

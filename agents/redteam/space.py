@@ -21,12 +21,15 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from estimation.errors import ScenarioError
 from estimation.lti import dense
+
+if TYPE_CHECKING:
+    from scenarios.build import Experiment
 
 __all__ = ["MetricSpec", "Space", "derive", "METRICS", "SENSOR_KINDS", "AGENT_KINDS", "active_components"]
 
@@ -252,7 +255,7 @@ def _bad(msg: str, source: str) -> ScenarioError:
     return ScenarioError(msg, source=source)
 
 
-def _modal_band(exp: Any) -> tuple[float, float]:
+def _modal_band(exp: Experiment) -> tuple[float, float]:
     nyquist = math.pi / exp.dt
     if exp.discrete:
         return (0.0, nyquist)
@@ -263,7 +266,7 @@ def _modal_band(exp: Any) -> tuple[float, float]:
     return (0.0, min(2.0 * w, nyquist) if w > 0 else nyquist)
 
 
-def derive(exp: Any, *, beyond: bool = False, metric: str | None = None, over: Any = None, block: str | None = None
+def derive(exp: Experiment, *, beyond: bool = False, metric: str | None = None, over: Any = None, block: str | None = None
            ) -> tuple[Space, MetricSpec]:
     """The space and the metric for a built experiment (``[redteam]`` applied, validated)."""
     from scenarios import plugins
@@ -306,9 +309,9 @@ def derive(exp: Any, *, beyond: bool = False, metric: str | None = None, over: A
                   "x0": np.asarray(exp.x0, dtype=float), "rows": [np.asarray(r) for r in exp.bank_rows]}
     sizes = [abs(x) for a in sc.attacks if a.target == "sensor" for x in (a.value, a.amplitude, a.scale) if x]
     sp.amplitude = float(rt.amplitude if rt.amplitude is not None else (max(sizes) if sizes else 1.0))
-    sp.omega = tuple(rt.omega) if rt.omega is not None else _modal_band(exp)
+    sp.omega = (rt.omega[0], rt.omega[1]) if rt.omega is not None else _modal_band(exp)
     w0 = min(exp.window[0], T)
-    sp.start = tuple(rt.start) if rt.start is not None else (0.0, w0)
+    sp.start = (rt.start[0], rt.start[1]) if rt.start is not None else (0.0, w0)
     if sp.start[1] >= T:
         raise _bad(f"redteam.start: attacks must start before the horizon t = {T:g}, got {list(sp.start)}", src)
 
