@@ -30,6 +30,7 @@ from agents.omniscient import ViewTopology, reads_view, view_topology
 from estimation.errors import ScenarioError
 
 if TYPE_CHECKING:
+    from agents.node import AgentNode
     from estimation.attacks import SensorAttackSignal
     from estimation.patrols import PatrolSchedule
     from estimation.signals import Signal
@@ -61,7 +62,7 @@ class AgentSlice:
     payload_shape: tuple[int, ...]
     in_ids: tuple[int, ...]
     out_ids: tuple[int, ...]
-    node: Any
+    node: AgentNode
     view: ViewTopology | None = None
     #: agents (this one, its in-neighbours, its view's) whose lockstep done report carries
     #: their broadcast estimate: honest agents whose payload is their estimate publish it
@@ -69,7 +70,7 @@ class AgentSlice:
     merged: frozenset[int] = frozenset()
 
 
-def merges(node: Any) -> bool:
+def merges(node: AgentNode) -> bool:
     """Whether an agent's lockstep done report carries its broadcast estimate (an honest
     agent whose payload is its estimate: the one message is both)."""
     return node.strategy is None and bool(node.payload_is_estimate)
@@ -84,7 +85,7 @@ def payload_shape(estimator: Any, n: int) -> tuple[int, ...]:
         return (n,)
 
 
-def agent_slices(exp: Experiment, nodes: Sequence[Any] | None = None) -> list[AgentSlice]:
+def agent_slices(exp: Experiment, nodes: Sequence[AgentNode] | None = None) -> list[AgentSlice]:
     """Every agent's slice of ``exp`` (``nodes``: fresh nodes built as the simulator builds
     them, :func:`agents.middleware.make_nodes`; built here when not given)."""
     if nodes is None:
@@ -108,7 +109,7 @@ def agent_slices(exp: Experiment, nodes: Sequence[Any] | None = None) -> list[Ag
     return out
 
 
-def agent_slice(exp: Experiment, agent_id: int, node: Any = None) -> AgentSlice:
+def agent_slice(exp: Experiment, agent_id: int, node: AgentNode | None = None) -> AgentSlice:
     """Agent ``agent_id``'s slice of ``exp`` (``node``: its node if already built)."""
     if agent_id not in exp.agent_ids:
         raise ScenarioError(f"no agent {agent_id} in this scenario; agents are {', '.join(map(str, exp.agent_ids))}")

@@ -10,9 +10,13 @@ import multiprocessing
 import os
 import sys
 import types
-from typing import Any
+from collections.abc import Iterable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any
 
 from estimation.errors import ScenarioError
+
+if TYPE_CHECKING:
+    from .slices import AgentSlice
 
 #: what the fork server imports once for every child it forks (an agent needs nothing else
 #: but its estimator's module); the plant and monitor import the rest of theirs after the fork
@@ -76,7 +80,7 @@ def context() -> Any:
 PEER_RETRY_MS = 50  # a peer retries a connect endpoint that is not listening yet this soon
 
 
-def peer_links(slices: Any, host: dict[int, str] | None = None) -> dict[str, set[str]]:
+def peer_links(slices: Sequence[AgentSlice], host: dict[int, str] | None = None) -> dict[str, set[str]]:
     """Process name -> the processes it exchanges messages with: the plant and the monitor
     with everyone; an agent with its in- and out-neighbours; an omniscient adversary also
     with the other in-neighbours of its out-neighbours (whose messages its view reads).
@@ -96,7 +100,7 @@ def peer_links(slices: Any, host: dict[int, str] | None = None) -> dict[str, set
     return links
 
 
-def agent_groups(agent_ids: Any, per_process: int) -> list[tuple[int, ...]]:
+def agent_groups(agent_ids: Iterable[int], per_process: int) -> list[tuple[int, ...]]:
     """The agents of each agent process: ``per_process`` consecutive ids each (the last
     group may be smaller)."""
     if per_process < 1:
@@ -106,7 +110,7 @@ def agent_groups(agent_ids: Any, per_process: int) -> list[tuple[int, ...]]:
 
 
 @contextlib.contextmanager
-def bare_main() -> Any:
+def bare_main() -> Iterator[None]:
     """While a child is spawned, hide the launching program's ``__main__`` (the ``rse``
     script, a notebook, a test runner): ``spawn`` would import it again in every child
     (with the CLI's libraries), and a child needs only :func:`child_entry`'s module."""

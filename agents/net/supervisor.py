@@ -19,12 +19,19 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from estimation.errors import RSEError
 
 from .child import child_entry
 from .startup import bare_main, context
+
+if TYPE_CHECKING:
+    from multiprocessing.process import BaseProcess
+
+    from transport.secure import TlsFiles
+
+    from .child import ChildSpec
 
 __all__ = ["Supervisor", "Outcome", "describe_exit", "stop_all", "STOP_GRACE_S", "END_GRACE_S", "ROUTER_START_S"]
 
@@ -75,8 +82,8 @@ class Supervisor:
         self.stop_when = stop_when
         self.ctx = context()
         self.recv_conn, self.send_conn = self.ctx.Pipe(duplex=False)  # the monitor's end: send_conn
-        self.procs: dict[str, Any] = {}
-        self.router: Any = None
+        self.procs: dict[str, BaseProcess] = {}
+        self.router: BaseProcess | None = None
         self.out = Outcome()
         self._stopping: list[int] = []
         self._noted: set[str] = set()
@@ -85,7 +92,7 @@ class Supervisor:
         self._k, self._worst = -1, float("nan")
 
     # ------------------------------------------------------------------ the whole run
-    def run(self, specs: dict[str, Any], *, router: tuple[str, Any, Any] | None = None,
+    def run(self, specs: dict[str, ChildSpec], *, router: tuple[str, TlsFiles | None, dict[str, Any]] | None = None,
             on_started: Callable[[dict[str, int]], None] = lambda pids: None,
             update: Callable[[int, float], None] = lambda k, w: None) -> Outcome:
         """Start the router (``(endpoint, its TLS identity, its access-control args)``) and the
@@ -101,8 +108,8 @@ class Supervisor:
                     p.start()
                 self.procs[name] = p
             self.send_conn.close()  # the monitor holds the writing end now
-            self.out.pids = {nm: p.pid for nm, p in self.procs.items()} | (
-                {"router": self.router.pid} if self.router is not None else {})
+            started = {**self.procs, **({"router": self.router} if self.router is not None else {})}
+            self.out.pids = {nm: p.pid for nm, p in started.items() if p.pid is not None}  # each started
             on_started(self.out.pids)
             self._watch(update)
         finally:
@@ -224,7 +231,7 @@ class Supervisor:
         return False
 
     # ------------------------------------------------------------------ start and stop
-    def _start_router(self, endpoint: str, tls: Any, acl: dict[str, Any]) -> bool:
+    def _start_router(self, endpoint: str, tls: TlsFiles | None, acl: dict[str, Any]) -> bool:
         """Start the router child and wait until its session is open (False: a signal came
         meanwhile); raises :class:`RSEError` if it exits or does not open within
         :data:`ROUTER_START_S`."""
@@ -263,7 +270,7 @@ class Supervisor:
                 c.close()
 
 
-def stop_all(procs: dict[str, Any]) -> None:
+def stop_all(procs: dict[str, BaseProcess]) -> None:
     """SIGTERM every live child, SIGKILL what is left after STOP_GRACE_S, join all."""
     alive = [p for p in procs.values() if p.exitcode is None]
     for p in alive:
