@@ -234,12 +234,15 @@ def run_sweep(scenario: Path, grid_specs: list[str], *, seeds: int, jobs: int, o
                 progress(len(rows), len(pts))
             run_points(scenario, overrides, todo, out, jobs=jobs, record=record, executor=ex, on_row=on_row)
     except BaseException:
-        # interrupted: the table holds the points finished so far (the sweep resumes)
-        if rows:
+        # interrupted: the table holds the points finished so far, read back from their
+        # point.json (a signal between a point's files and its row must not leave it out);
+        # the sweep resumes
+        done = finished_rows(out, pts)[0]
+        if done:
             from .runs import deferred_signals
 
             with deferred_signals():
-                write_table(out, rows, [k for k, _ in grid])
+                write_table(out, done, [k for k, _ in grid])
         raise
     order = {p.id: i for i, p in enumerate(pts)}
     rows.sort(key=lambda r: order.get(r.get("point", ""), len(order)))  # grid order, whatever the completion order

@@ -85,6 +85,7 @@ def test_a_role_handles_bursts_directly_and_queued_items_too():
     class Rec(Role):
         def __init__(self) -> None:
             self.queue = asyncio.Queue(maxsize=8)
+            self.bus = SimpleNamespace(auth=None)  # no pairwise tags: the items are handled as they are
             self.changed = asyncio.Event()
             self._waiting = None
             self.seen: list[bytes] = []
