@@ -90,7 +90,12 @@ def rate_line(summary: dict[str, Any]) -> str | None:
     most = f" (most: agent {worst[0]}, {worst[1]['skip_fraction']:.0%})" if worst and worst[1]["skipped"] else ""
     misses = f"; the plant missed {h['deadline_misses']} round deadline(s)" if h.get("deadline_misses") else ""
     return (f"the machine did not keep {h['rate_hz']:g} Hz: the agents skipped {h['skip_fraction']:.1%} of their "
-            f"rounds{most}{misses}; they kept about {h['kept_rate_hz']:.3g} Hz")
+            f"rounds{most}{misses}; they kept about {_hz(h['kept_rate_hz'])} Hz")
+
+
+def _hz(rate: float) -> str:
+    """A rate for a sentence: 3 significant digits, no exponent (1000, 494, 48.3, 0.5)."""
+    return f"{rate:.0f}" if rate >= 100 else f"{rate:.3g}"
 
 
 def health_rows(summary: dict[str, Any]) -> list[list[str]]:

@@ -89,6 +89,8 @@ def test_the_summary_joins_senders_and_receivers_and_says_the_rate_was_not_kept(
     assert kept["kept"] is True and rate_line({"health": kept}) is None
     lockstep = health_section(stats, [1, 2], links, mode="lockstep", rate=None, deadline_misses=0)
     assert rate_line({"health": lockstep}) is None
+    fast = health_section(stats, [1, 2], links, mode="realtime", rate=2000.0, deadline_misses=0)
+    assert rate_line({"health": fast}).endswith("they kept about 1600 Hz")  # no exponent
 
 
 @pytest.mark.slow
