@@ -110,6 +110,22 @@ def _payload(size: int, k: int) -> bytes:
     return _STAMP.pack(k) + bytes(max(0, size - 8))
 
 
+async def _done_reports(q: asyncio.Queue, k: int, N: int) -> None:
+    """The plant: wait for the N done reports of round ``k``."""
+    got = 0
+    while got < N:
+        key, p = await q.get()
+        if type(p) is bytes and "/done/" in key and _STAMP.unpack_from(p)[0] == k:
+            got += 1
+
+
+async def _report(conn: Connection | None, rounds: int, elapsed: float) -> None:
+    """The plant reports its round rate to the launcher, then lets its last messages go."""
+    if conn is not None:
+        conn.send({"rounds": rounds, "elapsed": elapsed, "rounds_per_s": rounds / elapsed})
+    await asyncio.sleep(0.05)
+
+
 async def _joined(q: asyncio.Queue, bus: Bus, keys: Keys, me: int, need: set[str]) -> AsyncIterator[tuple[str, bytes]]:
     """An agent's data items, after its join: it notes the liveliness tokens it sees, sends
     ``ready`` once every process of ``need`` is seen, and yields every other item."""
@@ -150,16 +166,10 @@ async def _minimal(role: str, idx: int, sizes: Sizes, rounds: int, keys: Keys, b
         t0 = time.perf_counter()
         for k in range(rounds):
             bus.publish(tick, _STAMP.pack(k))
-            got = 0
-            while got < N:
-                key, p = await q.get()
-                if type(p) is bytes and "/done/" in key and _STAMP.unpack_from(p)[0] == k:
-                    got += 1
+            await _done_reports(q, k, N)
         elapsed = time.perf_counter() - t0
         bus.publish(tick, _STAMP.pack(-1))
-        if conn is not None:  # the plant reports to the launcher
-            conn.send({"rounds": rounds, "elapsed": elapsed, "rounds_per_s": rounds / elapsed})
-        await asyncio.sleep(0.05)
+        await _report(conn, rounds, elapsed)
         return
     me, ins = ids[idx], sizes.in_ids[idx]
     bus.subscribe(tick, q)
@@ -234,18 +244,12 @@ async def _plant(sizes: Sizes, rounds: int, keys: Keys, bus: Bus, q: asyncio.Que
         bus.publish(truth, _payload(sizes.truth, k))
         for i in range(N):
             bus.publish(loc[i], _payload(sizes.meas[i], k))
-        got = 0
-        while got < N:
-            key, p = await q.get()
-            if type(p) is bytes and "/done/" in key and _STAMP.unpack_from(p)[0] == k:
-                got += 1
+        await _done_reports(q, k, N)
     elapsed = time.perf_counter() - t0
     for i in range(N):
         bus.publish(loc[i], _STAMP.pack(-1))
     bus.publish(truth, _STAMP.pack(-1))
-    if conn is not None:  # the plant reports to the launcher
-        conn.send({"rounds": rounds, "elapsed": elapsed, "rounds_per_s": rounds / elapsed})
-    await asyncio.sleep(0.05)
+    await _report(conn, rounds, elapsed)
 
 
 async def _monitor(keys: Keys, bus: Bus, q: asyncio.Queue) -> None:
