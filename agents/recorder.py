@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from .columns import column, repeated_strings
 from .monitor import Monitor
@@ -115,9 +116,9 @@ def read_partial(run_dir: str | Path) -> pa.Table | None:
     table = pa.Table.from_batches(batches)
     # keep, for each (k, agent, block), the row of the latest segment (the last one written):
     # in the order (k, agent, block, position in the streams), the last of each equal key
-    k = table.column("k").to_numpy()
-    agent = table.column("agent").to_numpy()
-    _, block = np.unique(table.column("block").to_numpy(zero_copy_only=False).astype(str), return_inverse=True)
+    k, agent = _np(table, "k"), _np(table, "agent")
+    blocks = table.column("block").combine_chunks()  # as an index into its distinct values
+    block = _array(pc.index_in(blocks, value_set=pc.unique(blocks)))
     order = np.lexsort((np.arange(len(k)), block, agent, k))
     keys = np.stack([k[order], agent[order], block[order]])
     last = np.ones(len(order), dtype=bool)
@@ -127,23 +128,37 @@ def read_partial(run_dir: str | Path) -> pa.Table | None:
     return table.take(column(kept.astype(np.int64)))
 
 
+def _np(table: pa.Table, name: str) -> np.ndarray:
+    """A numeric column as an array, read from its buffer: pyarrow's ``to_numpy`` imports
+    pandas, seconds of a restarted monitor's start on a busy machine."""
+    return _array(table.column(name).combine_chunks())
+
+
+def _array(a: pa.Array) -> np.ndarray:
+    if a.null_count or not (pa.types.is_integer(a.type) or pa.types.is_floating(a.type)):
+        return a.to_numpy(zero_copy_only=False)
+    dt = np.dtype(f"{'f' if pa.types.is_floating(a.type) else 'i' if pa.types.is_signed_integer(a.type) else 'u'}"
+                  f"{a.type.bit_width // 8}")
+    return np.frombuffer(a.buffers()[1], dtype=dt, count=len(a), offset=a.offset * dt.itemsize)
+
+
 def load_into(mon: Monitor, table: pa.Table) -> None:
     """Fill ``mon``'s arrays with the rows of a partial stream (a restarted monitor resumes
     from what the earlier ones recorded)."""
     if table is None or table.num_rows == 0:
         return
     exp = mon.exp
-    k = table.column("k").to_numpy()
+    k = _np(table, "k")
     keep = k < mon.error_2.shape[0]
     idx_a = {a: i for i, a in enumerate(exp.agent_ids)}
     idx_b = {b: i for i, b in enumerate(mon.block_names)}
-    a = np.array([idx_a.get(int(v), -1) for v in table.column("agent").to_numpy()])
+    a = np.array([idx_a.get(int(v), -1) for v in _np(table, "agent")])
     b = np.array([idx_b.get(v, -1) for v in table.column("block").to_pylist()])
     keep &= (a >= 0) & (b >= 0)
     k, a, b = k[keep], a[keep], b[keep]
     for name in ("error_2", "error_inf"):  # relative_error_2 follows from error_2 and truth_norm
-        getattr(mon, name)[k, a, b] = table.column(name).to_numpy()[keep]
-    mon.truth_norm[k, b] = table.column("truth_norm").to_numpy()[keep]
+        getattr(mon, name)[k, a, b] = _np(table, name)[keep]
+    mon.truth_norm[k, b] = _np(table, "truth_norm")[keep]
     if k.size:
         mon.last_round = max(mon.last_round, int(k.max()))
 

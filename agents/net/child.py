@@ -122,12 +122,6 @@ async def _role_main(spec: ChildSpec, exp: Any) -> Any:
     loop = asyncio.get_running_loop()
     log.debug("event loop: %s", type(loop).__module__.partition(".")[0])  # uvloop or asyncio (transport.event_loop)
     watcher = _stop_on_signals(loop, spec.watch_parent)
-    if spec.role == "monitor" and MONITOR_NICE:
-        # The monitor only records: on a machine shared with the team it yields the CPU
-        # to the plant and agents, whose rounds it must not slow down (lockstep bounds
-        # its lag by the plant's MAX_AHEAD acknowledgement window).
-        with contextlib.suppress(OSError):
-            os.nice(MONITOR_NICE)
     session = await asyncio.to_thread(_open, spec.session)
     log.debug("session open")
     bus = None
@@ -220,9 +214,18 @@ async def _monitor(spec: ChildSpec, exp: Experiment, bus: Bus, keys: Keys) -> An
     served viewer the wait after the run until SIGINT / SIGTERM."""
     from .monitor import run_monitor
 
-    conn = spec.conn
+    conn, niced = spec.conn, False
 
     def progress(kind: str, data: Any) -> None:
+        nonlocal niced
+        if kind == "round" and not niced and MONITOR_NICE:
+            # Once it records, the monitor yields the CPU to the plant and agents, whose
+            # rounds it must not slow down (lockstep bounds its lag by the plant's MAX_AHEAD
+            # window); not before: a monitor restarted on a busy machine would take tens of
+            # seconds to import, read the earlier record and rejoin.
+            niced = True
+            with contextlib.suppress(OSError):
+                os.nice(MONITOR_NICE)
         if conn is not None:
             try:
                 conn.send((kind, data))
