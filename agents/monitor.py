@@ -227,7 +227,8 @@ class Monitor:
                 v = np.abs(self._est[r] - self._x[r])
             return float(np.nanmax(v)) if not np.all(np.isnan(v)) else float("nan")
         k = self.last_round
-        return float(np.nanmax(self.error_inf[k])) if k >= 0 else float("nan")
+        v = self.error_inf[k] if k >= 0 else np.full(1, np.nan)
+        return float(np.nanmax(v)) if not np.all(np.isnan(v)) else float("nan")  # a round of no report: nan
 
     def metric(self, name: str) -> np.ndarray:
         """``(rounds, agents, blocks)`` array of a metric; ``error_ratio`` is ``error_2``

@@ -53,13 +53,19 @@ Inbox = Mapping[int, Received]
 
 
 def held(inbox: Inbox, kk: int, max_age: int) -> list[np.ndarray]:
-    """The values that hold over the step from round ``kk`` to ``kk + 1``: messages stamped
-    ``kk - max_age`` to ``kk``. In round ``k`` after ``k - 1`` that is every message not older
-    than ``k - 1 - max_age`` (the inbox holds nothing newer than ``k - 1``); over the steps
-    of skipped rounds it leaves out a message stamped after the step, whose estimate is of
-    a later time than the one being integrated. In the senders' order, whatever order the
-    messages arrived in, so that a sum over them rounds alike in every driver."""
-    return [r.value for _, r in sorted(inbox.items()) if kk - max_age <= r.stamp <= kk]
+    """The values that hold over the step from round ``kk`` to ``kk + 1``: each sender's
+    newest message, if stamped within ``max_age`` rounds of ``kk``. In round ``k`` after
+    ``k - 1`` (every driver without skipped rounds) that is every message not older than
+    ``k - 1 - max_age`` (the inbox holds nothing newer than ``k - 1``). Over the steps of
+    rounds a realtime agent skipped, a message stamped up to ``max_age`` rounds after the
+    step also holds (the estimate nearest in time that the agent has: without it, each
+    skip of a round or two cut the agent's coupling for those steps, and the attacked
+    agent of ``lee_kim_shim.toml`` drifted above its bound after every burst of skips),
+    but not one stamped later: an estimate of ``x`` at the end of a long gap, coupled in
+    over the whole gap, pulls the agent off as far as a stale measurement does. In the
+    senders' order, whatever order the messages arrived in, so that a sum over them
+    rounds alike in every driver."""
+    return [r.value for _, r in sorted(inbox.items()) if abs(r.stamp - kk) <= max_age]
 
 
 @runtime_checkable

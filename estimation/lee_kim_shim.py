@@ -32,9 +32,11 @@ hold). Plain forward Euler is unstable at ``dt = 1e-2`` for the three-inertia pl
 integrated the same way, with ``y_i`` only over the first step: a skipped round carries no
 measurement, so the partial observer predicts open loop over the rest of the gap rather
 than hold a stale ``y_i`` there. Each step of a gap uses the neighbours' estimates stamped
-up to that step (:func:`estimation.base.held`), never one stamped after it: an estimate of
-``x`` at the end of a 3 s gap, coupled in over the whole gap, pulled ``x_i`` as far off
-as holding ``y_i`` did (an agent cut off for 3 s came back 0.3 to 0.6 off, against 0.05).
+within ``max_age`` rounds of that step (:func:`estimation.base.held`), never one stamped
+later: an estimate of ``x`` at the end of a 3 s gap, coupled in over the whole gap, pulled
+``x_i`` as far off as holding ``y_i`` did (an agent cut off for 3 s came back 0.3 to 0.6
+off, against 0.05), while a gap of a few rounds without coupling drifted the attacked
+agent off its bound.
 
 Gains ``L_i`` are placed by :func:`shifted_poles`: every complex pair of
 ``W_i A V_i`` keeps its frequency and gets real part ``real_part``; real eigenvalues are

@@ -18,7 +18,7 @@ cutting agents off a team under attack raises the others' errors for a while (th
 attacked agent 1 reached 0.237 to 0.246 with agent 3 cut and 0.284 to 0.293 with agents 4
 and 5 cut, against 0.2165 without a fault); the test prints those peaks. An agent back
 from the cut steps once over the rounds it missed: open loop, each step coupling in only
-the estimates stamped up to it (estimation/lee_kim_shim.py). Before, it held its last
+the estimates stamped within max_age rounds of it (estimation/lee_kim_shim.py). Before, it held its last
 measurement and coupled in its neighbours' fresh estimates over the whole 3.4 s gap, came
 back up to 0.6 off, and agent 1's peak and its error over [22, 24] depended on which
 message came first (peaks 0.28 to 0.43; over the window 0.217 to 0.254, once over the

@@ -36,11 +36,14 @@ def test_partial_observer_gains_place_the_poles():
 
 
 def run(dt, *, T=12.0, attack=True, variant="median", kappa=0.5, gamma=2.0, drop_agent=None, attack_at=5.0,
-        cut=((), 0, 0)):
+        cut=((), 0, 0), skips=(0.0, 0, 0)):
     """Infinity-norm errors (rounds x agents) of the paper's five agents on a ring. ``cut =
     (agents, k0, k1)``: those agents are cut off for rounds ``k0 <= k < k1`` (no step, no
     message; the others keep their last message until it ages out), and come back in round
-    ``k1`` with one call over the rounds they missed (NaN rows while cut off)."""
+    ``k1`` with one call over the rounds they missed (NaN rows while cut off). ``skips =
+    (p, burst, k0)``: from round ``k0`` on, each agent in each round begins with probability
+    ``p`` to skip the next 1 to ``burst`` rounds (a realtime agent descheduled on a busy
+    machine), and runs the round after them with one call."""
     p = three_inertia()
     des = design(p.A, p.B, p.banks)
     rng = np.random.default_rng(7)
@@ -53,6 +56,7 @@ def run(dt, *, T=12.0, attack=True, variant="median", kappa=0.5, gamma=2.0, drop
     K = int(round(T / dt))
     last: dict[int, Received] = {}  # the newest message of each agent
     errs = np.full((K + 1, 5), np.nan)
+    skip_rng, skip_until = np.random.default_rng(11), np.zeros(5, dtype=int)
     for k in range(K + 1):
         y = p.C @ x
         if attack and k * dt >= attack_at:
@@ -60,6 +64,10 @@ def run(dt, *, T=12.0, attack=True, variant="median", kappa=0.5, gamma=2.0, drop
         outs = {}
         for i, e in enumerate(ests):
             if i in cut[0] and cut[1] <= k < cut[2]:
+                continue
+            if skips[0] and k >= skips[2] and k >= skip_until[i] and skip_rng.random() < skips[0]:
+                skip_until[i] = k + skip_rng.integers(1, skips[1] + 1)
+            if k < skip_until[i]:
                 continue
             inbox = {j: last[j] for j in in_neighbours(Adj, i) if j in last}
             outs[i] = e.step(k, None if (drop_agent == i and 200 <= k < 400) else y[i:i + 1], inbox)
@@ -145,10 +153,11 @@ def test_agents_cut_off_for_3_s_come_back_near_where_they_were():
 
 def test_one_call_over_skipped_rounds_equals_a_step_per_round():
     """``step(k)`` after ``step(k0)`` with ``k > k0 + 1`` integrates each skipped round as a
-    round with no measurement, each step coupling in the estimates stamped up to it (not
-    older than ``max_age``): bit for bit what a call per round with ``measurement=None``
-    computes. The inbox holds a message stamped inside the gap (62) and one from before it
-    (48), which holds over the gap's first two steps (``max_age`` 3) and then ages out."""
+    round with no measurement, each step coupling in the estimates stamped within
+    ``max_age`` rounds of it: bit for bit what a call per round with ``measurement=None``
+    computes. The inbox holds a message stamped inside the gap (62), which holds over the
+    steps from 59 to 65, and one from before it (48), which holds over the gap's first two
+    steps (``max_age`` 3) and then ages out."""
     p = three_inertia()
     des = design(p.A, p.B, p.banks)
     u = Signal.sine(1, amplitude=0.01, omega=0.5)
@@ -166,3 +175,22 @@ def test_one_call_over_skipped_rounds_equals_a_step_per_round():
         b.step(k, None, inbox)
     np.testing.assert_array_equal(got, b.step(80, y, inbox))
     assert np.abs(got - x0).max() > 1e-3  # it moved
+
+
+def test_agents_that_skip_rounds_in_bursts_stay_near_their_lockstep_error():
+    """Every agent skips bursts of 1 to 5 rounds (about 6% of its rounds) from t = 10 s, as
+    realtime agents on a busy machine do; each comes back with one call over the rounds it
+    missed, in which its neighbours' estimates stamped in the gap are already in its inbox.
+    Each step of the gap couples in the estimate stamped within ``max_age`` rounds of it
+    (also one stamped just after the step): the attacked agent 1 stays near its error
+    without skips (measured over [14, 24]: 90th percentile 1.034 times, largest 1.046
+    times). Coupling in only the estimates stamped up to each step cut the coupling for
+    most of every burst: 1.121 and 1.193 times (largest 0.258, over the scenario's bound
+    of 0.25)."""
+    ref = run(1e-2, T=24.0, attack_at=10.0)
+    got = run(1e-2, T=24.0, attack_at=10.0, skips=(0.02, 5, 1000))
+    window = slice(1400, None)
+    level = np.max(ref[window, 0])
+    assert np.isnan(got[window]).mean() > 0.04  # the agents did skip
+    assert np.nanpercentile(got[window, 0], 90) <= 1.05 * level, (np.nanpercentile(got[window, 0], 90), level)
+    assert np.nanmax(got[window, 0]) <= 1.1 * level, (np.nanmax(got[window, 0]), level)
