@@ -9,6 +9,8 @@ measured round and skips the older ones it had no time for). Per link ``j->i``:
 * ``lost_model``: dropped by the scenario's channel model (erasures, loss windows);
 * ``lost_transport``: sent, never arrived (lost by the transport, or still in flight
   when the receiver stopped: a link of a run that ends while messages fly shows a few);
+  ``None`` when either end is a restarted process (its counts start at its rejoin, the
+  other end's at round 0);
 * ``late``: arrived after the receiver's round meant to use them had run, or delayed by
   the channel model;
 * ``age_p50_ms``, ``age_p99_ms``: the age of the estimates when a round took them in
@@ -45,6 +47,7 @@ def _agents(stats: dict[str, Any], agent_ids: list[int]) -> dict[str, dict[str, 
 
 def _links(stats: dict[str, Any], agent_ids: list[int], links: dict[str, dict[str, int]]) -> dict[str, dict[str, Any]]:
     published: dict[str, int] = {}
+    rejoined = {str(aid) for aid in agent_ids if str(aid) in stats and stats[str(aid)].meta.get("rejoined")}
     for aid in agent_ids:
         m = stats.get(str(aid))
         if m is not None and "out" in m.arrays:
@@ -60,8 +63,9 @@ def _links(stats: dict[str, Any], agent_ids: list[int], links: dict[str, dict[st
             c = links.get(key, {})
             arrived = int(c.get("sent", 0))
             sent = published.get(key)
+            spans = sent is not None and not {str(aid), str(int(j))} & rejoined  # both counts from round 0
             out[key] = {"sent": sent, "arrived": arrived, "lost_model": int(c.get("dropped", 0)),
-                        "lost_transport": None if sent is None else max(sent - arrived, 0),
+                        "lost_transport": max(sent - arrived, 0) if spans and sent is not None else None,
                         "late": int(late) + int(c.get("late", 0)), "stalls": int(stalls),
                         "age_p50_ms": None if p50 < 0 else float(p50), "age_p99_ms": None if p99 < 0 else float(p99)}
     return out

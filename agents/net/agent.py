@@ -473,7 +473,8 @@ class AgentProcess(RejoinChecks, Role["AgentSlice"]):
                 except TimeoutError:
                     pass
             self.send_stats(self.id, link_rows(self.node.links), health=(self.health.ages_rows(), self.health.out_rows()),
-                            rounds=self.rounds_run, skipped=self.skipped, waited_out=self.waited_out, polls=self.polls)
+                            rounds=self.rounds_run, skipped=self.skipped, waited_out=self.waited_out, polls=self.polls,
+                            rejoined=self.rejoin)
             await asyncio.sleep(0.05)
             return {"rounds": self.rounds_run}
         finally:

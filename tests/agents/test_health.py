@@ -87,6 +87,11 @@ def test_the_summary_joins_senders_and_receivers_and_says_the_rate_was_not_kept(
     kept = health_section({k: v for k, v in stats.items() if k != "1"}, [2], links, mode="realtime", rate=100.0,
                           deadline_misses=0)
     assert kept["kept"] is True and rate_line({"health": kept}) is None
+    # a restarted receiver counts from its rejoin, its sender from round 0: no transport loss is inferred
+    stats["1"].meta["rejoined"] = True
+    again = health_section(stats, [1, 2], links, mode="realtime", rate=100.0, deadline_misses=0)["links"]
+    assert again["2->1"]["sent"] == 100 and again["2->1"]["lost_transport"] is None
+    assert again["1->2"]["lost_transport"] is None
     lockstep = health_section(stats, [1, 2], links, mode="lockstep", rate=None, deadline_misses=0)
     assert rate_line({"health": lockstep}) is None
     fast = health_section(stats, [1, 2], links, mode="realtime", rate=2000.0, deadline_misses=0)
