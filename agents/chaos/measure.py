@@ -14,6 +14,8 @@ Rounds are the plant's: round ``k`` ticks at ``round0_at + k / rate`` (``summary
   next fault: the first round after the last out-of-bound report of each, every one of
   them having reported within the last second before the next fault (a missing report is
   not out of bound: a realtime agent skips a round now and then);
+* **rejoined** (kills): how long after the restart the process was back: the restarted
+  agent's first report at the monitor, the restarted monitor's first recorded round;
 * **rounds unrecorded**: rounds from the fault's beginning until it recovered in which
   some affected agent's report is missing (the monitor: the rounds no monitor recorded).
 """
@@ -162,13 +164,23 @@ def measure_fault(rec: EpisodeRecord, f: Fault, events: list[dict[str, Any]], *,
     if f.kind == "kill-monitor":  # the rounds no monitor recorded: no agent's report
         unrec = int((~np.isfinite(err[r_s:stop])).all(axis=1).sum()) if cols else 0
     ok = recovered_s is not None and recovered_s <= f.budget + 1e-9
+    rejoined = _rejoined(rec, f, r_e, until, regular) if f.kind in ("kill-agent", "kill-monitor") else None
     return {"why": "" if r_rec is not None else _why(err, bound.limit, r_e, until, hold),
         "fault": f.index, "episode": f.episode, "kind": f.kind, "target": f.target,
         "at_s": r_s / rate, "lasts_s": (r_e - r_s) / rate, "begin_round": r_s, "end_round": r_e,
-        "noticed_s": noticed, "recovered_s": recovered_s, "budget_s": f.budget, "recovered": ok,
+        "noticed_s": noticed, "rejoined_s": rejoined, "recovered_s": recovered_s, "budget_s": f.budget, "recovered": ok,
         "rounds_unrecorded": unrec, "affected": ",".join(map(str, affected)),
         "bound": f"{bound.metric} <= {bound.limit:g}",
     }
+
+
+def _rejoined(rec: EpisodeRecord, f: Fault, r_e: int, until: int, regular: list[int]) -> float | None:
+    """How long after its restart a killed process was back: the restarted agent's first
+    report at the monitor, the restarted monitor's first recorded round (None: not before
+    the next fault)."""
+    c = rec.cols([f.agents[0]] if f.kind == "kill-agent" else regular)
+    k = _first(np.isfinite(rec.err[:until, c]).any(axis=1), r_e) if c and r_e < until else None
+    return None if k is None else (k - r_e) / rec.rate
 
 
 def _why(err: np.ndarray, limit: float, end: int, until: int, hold: int) -> str:

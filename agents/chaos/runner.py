@@ -334,7 +334,7 @@ def _write(out: Path, plan: dict[str, Any], res: ChaosResult) -> None:
     from agents.rundir import write_json
 
     cols = ["fault", "episode", "kind", "target", "at_s", "lasts_s", "begin_round", "end_round", "noticed_s",
-            "recovered_s", "budget_s", "recovered", "rounds_unrecorded", "affected", "bound", "why"]
+            "rejoined_s", "recovered_s", "budget_s", "recovered", "rounds_unrecorded", "affected", "bound", "why"]
     df = pd.DataFrame(res.rows, columns=cols)
     df.to_parquet(out / "chaos.parquet", index=False)
     write_json(out / "chaos.json", plan | {"status": res.status, "failures": res.failures,

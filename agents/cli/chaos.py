@@ -67,7 +67,7 @@ def chaos(scenario: Path, duration: float, faults: str | None, seed: int, rate: 
 
 
 HEAD = f"{'#':>3}  {'fault':<12}  {'target':<12}  {'at s':>7}  {'lasts s':>7}  {'noticed s':>9}  " \
-       f"{'recovered s':>11}  {'budget s':>8}  {'unrecorded':>10}"
+       f"{'rejoined s':>10}  {'recovered s':>11}  {'budget s':>8}  {'unrecorded':>10}"
 
 
 def table_lines(res: Any) -> list[str]:
@@ -79,7 +79,7 @@ def table_lines(res: Any) -> list[str]:
     for r in res.rows:
         at = f"{r['at_s']:.1f}" if len(res.episodes) < 2 else f"{r['episode'] + 1}/{r['at_s']:05.1f}"
         lines.append(f"{r['fault']:>3}  {r['kind']:<12}  {r['target']:<12}  {at:>7}  {r['lasts_s']:>7.1f}  "
-                     f"{fmt_s(r['noticed_s']):>9}  {fmt_s(r['recovered_s']):>11}  {r['budget_s']:>8g}  "
+                     f"{fmt_s(r['noticed_s']):>9}  {fmt_s(r.get('rejoined_s')):>10}  {fmt_s(r['recovered_s']):>11}  {r['budget_s']:>8g}  "
                      f"{r['rounds_unrecorded']:>10}  {'ok' if r['recovered'] else 'FAIL'}")
     lines.append(f"{sum(r['recovered'] for r in res.rows)} of {len(res.rows)} fault(s) recovered within budget; "
                  f"{res.undeclared} round(s) with a missing report outside the faults; {res.out / 'chaos.parquet'}")
