@@ -214,15 +214,16 @@ async def _monitor(spec: ChildSpec, exp: Experiment, bus: Bus, keys: Keys) -> An
     served viewer the wait after the run until SIGINT / SIGTERM."""
     from .monitor import run_monitor
 
-    conn, niced = spec.conn, False
+    # lockstep: once it records, the monitor yields the CPU to the plant and agents, whose
+    # rounds it must not slow down (its lag is bounded by the plant's MAX_AHEAD window); not
+    # before: a monitor restarted on a busy machine would take tens of seconds to import,
+    # read the earlier record and rejoin. Realtime: never (a starved monitor's bounded
+    # queue drops the reports it cannot take: rounds lost from the record)
+    conn, niced = spec.conn, spec.cfg.mode != "lockstep"
 
     def progress(kind: str, data: Any) -> None:
         nonlocal niced
         if kind == "round" and not niced and MONITOR_NICE:
-            # Once it records, the monitor yields the CPU to the plant and agents, whose
-            # rounds it must not slow down (lockstep bounds its lag by the plant's MAX_AHEAD
-            # window); not before: a monitor restarted on a busy machine would take tens of
-            # seconds to import, read the earlier record and rejoin.
             niced = True
             with contextlib.suppress(OSError):
                 os.nice(MONITOR_NICE)
