@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -55,6 +56,20 @@ def answers(port: int) -> bool:
         return False
 
 
+def page(port: int, timeout: float = 30.0) -> tuple[int, str]:
+    """The viewer's page: its status and text. A server that already accepts connections may
+    close the first ones unanswered while it starts on a loaded machine: asked again then."""
+    end = time.monotonic() + timeout
+    while True:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as r:
+                return r.status, r.read().decode("utf-8", "replace")
+        except (ConnectionError, urllib.error.URLError):  # RemoteDisconnected is a ConnectionError
+            if time.monotonic() > end:
+                raise
+            time.sleep(0.5)
+
+
 class Lines:
     """The lines a process prints, read on a thread; :meth:`wait_for` waits for one."""
 
@@ -92,10 +107,8 @@ def test_serve_web_serves_the_viewer_and_stops_on_ctrl_c(tmp_path):
         # the run is over and the viewer still serves it: the event itself, not a file size
         assert out.wait_for("still serving", 120), out.text
         assert answers(web) and answers(grpc)
-        with urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10) as r:
-            body = r.read().decode("utf-8", "replace")
-            assert r.status == 200
-        assert "rerun" in body.lower()
+        status, body = page(web)
+        assert status == 200 and "rerun" in body.lower()
         assert json.loads((tmp_path / "run" / "summary.json").read_text())["complete"] is True
         t0 = time.monotonic()
         proc.send_signal(signal.SIGINT)
@@ -124,8 +137,8 @@ def test_rse_run_serve_web_streams_from_the_monitor_and_stops_on_ctrl_c(tmp_path
     out = Lines(proc.stdout)
     try:
         assert wait_for(lambda: answers(web) and answers(grpc), 120), "viewer ports never opened"
-        with urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10) as r:
-            assert r.status == 200 and "rerun" in r.read().decode("utf-8", "replace").lower()
+        status, text = page(web)
+        assert status == 200 and "rerun" in text.lower()
         # the run is over and the monitor still serves it: the line it prints then
         assert out.wait_for("still serving", 240), out.text
         assert (tmp_path / "run" / "summary.json").exists()

@@ -26,16 +26,15 @@ bound).
 
 Accuracy in realtime needs a machine that keeps the rate: a measurement or an estimate a
 process cannot take in time is dropped for it alone, so on a loaded machine agents skip
-rounds and their errors grow with nothing wrong in the code (the attacked agent 1 at 0.25
-over [22, 24] when the team reported 86 to 94% of its rounds; load average 60 on two cores:
-0.19 at t = 10, agent 1 at 0.81). The realtime cases therefore run at the rate this machine
+rounds and their errors grow (load average 60 on two cores: 0.19 at t = 10, agent 1 at
+0.81; see ``KEPT_UP`` for a machine with two busy processes). The realtime cases therefore run at the rate this machine
 keeps: the ``rate`` fixture calibrates it first (tests/realtime.py: a short probe of the
 team from 100 Hz down, not below ``RATE_FLOOR``); scenario time stays ``DT`` per round, so a
 lower rate only stretches the run in wall time. Each case measures the share of rounds
 every agent reported before the fault and over the window; when the load changed since the
-calibration and that share is below ``KEPT_UP``, the case runs again at a lower rate (twice at most),
-and asserts its accuracy bounds (the fault-tolerance checks, and ``BOUND_LOADED`` for every
-agent over the window, hold on each run).
+calibration and that share is below ``KEPT_UP``, the case runs again at a lower rate (twice at
+most), and asserts its accuracy bounds on the last run (the fault-tolerance checks, and
+``BOUND_LOADED`` for every agent over the window, hold on each run).
 
 Needs root (skipped otherwise, or when ``ip netns add`` fails). Each case is bounded
 (``CASE_S``, only a hang reaches it) and kills every process it started and deletes its
@@ -82,13 +81,14 @@ BOUND_T10, BOUND_ATTACK = 0.01, 0.25  # the scenario's [[expect]] bounds
 # 0.078 to 0.092 and 0.153 to 0.173 (agents 2 to 5, on a loaded machine); with the gap
 # stepped open loop, 12 runs on a quiet machine: agent 1 at 0.216 to 0.219
 BOUND_END = {1: BOUND_ATTACK, 2: 0.05, 3: 0.1, 4: BOUND_ATTACK, 5: BOUND_ATTACK}
-# the accuracy checks need every agent to have reported this share of the rounds before the
-# fault and over the window. The attacked agent 1's error over [22, 24] grows steadily with
-# the share of rounds the team skips (it leans on its neighbours' estimates): a quiet machine
-# keeps 98 to 100% and agent 1 stays at 0.217 to 0.224; with other work on the two cores,
-# 86 to 94% gave 0.250 to 0.253 (at the scenario's bound 0.25, no margin left), 79 to 80% gave
-# 0.272 to 0.281, and at load 60 agent 1 reached 0.81. Below this share the case reports the
-# figures and skips its accuracy part
+# the share of the rounds every agent should report before the fault and over the window: below
+# it the case runs again at a lower rate. The attacked agent 1 leans on its neighbours'
+# estimates: while the steps of skipped rounds coupled in only estimates stamped up to them,
+# its error over [22, 24] grew with the share skipped (86 to 94% kept: 0.250 to 0.253, at the
+# scenario's bound; 79 to 80%: 0.272 to 0.281). Each step of a gap now couples in the estimate
+# stamped nearest to it (estimation.base.held): a CI run beside 2 busy processes kept 87.5%,
+# 91.0% and 96.7% of the rounds at 100, 70 and 51 Hz and agent 1 stayed at 0.217 each time.
+# The accuracy bounds are asserted on the last run, whatever share it kept
 KEPT_UP = 0.97
 # the bound over [22, 24] asserted also when the machine did not keep up (see _fault_case)
 BOUND_LOADED = 1.5
@@ -315,11 +315,9 @@ def _fault_case(net: Net, tmp_path: Path, name: str, cut: Any, heal: Any, faulty
               f"again at {lower:g} Hz")
         fig = _fault_run(net, tmp_path / again, name, cut, heal, faulty, lower)
         rate = lower
-    assert fig["present_before_and_end"] >= KEPT_UP, (
-        f"the machine did not keep {rate:g} Hz: an agent reported only {fig['present_before_and_end']:.1%} of the "
-        f"rounds before the fault or over the window (< {KEPT_UP:.0%})")
-    assert np.nanmax(fig["at_10"]) <= BOUND_T10, fig["at_10"]
-    assert all(fig["worst_end"][a - 1] <= BOUND_END[a] for a in range(1, 6)), (fig["worst_end"], BOUND_END)
+    kept = f"at {rate:g} Hz, {fig['present_before_and_end']:.1%} of the rounds kept"
+    assert np.nanmax(fig["at_10"]) <= BOUND_T10, (fig["at_10"], kept)
+    assert all(fig["worst_end"][a - 1] <= BOUND_END[a] for a in range(1, 6)), (fig["worst_end"], BOUND_END, kept)
     assert fig["expectations_ok"]
     return fig
 
