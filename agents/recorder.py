@@ -139,6 +139,8 @@ def _array(a: pa.Array) -> np.ndarray:
         return a.to_numpy(zero_copy_only=False)
     dt = np.dtype(f"{'f' if pa.types.is_floating(a.type) else 'i' if pa.types.is_signed_integer(a.type) else 'u'}"
                   f"{a.type.bit_width // 8}")
+    if len(a) == 0:
+        return np.empty(0, dtype=dt)
     return np.frombuffer(a.buffers()[1], dtype=dt, count=len(a), offset=a.offset * dt.itemsize)
 
 

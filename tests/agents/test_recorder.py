@@ -158,3 +158,21 @@ def test_a_killed_writer_leaves_every_round_up_to_a_second_before_the_kill(tmp_p
     out = rse("report", str(d))
     assert out.returncode == 0, out.stderr
     assert "INCOMPLETE: no summary.json" in out.stdout.replace("\n", "")
+
+
+def test_the_readers_columns_come_from_the_arrow_buffers_without_pandas():
+    """A restarted monitor reads the earlier record without pyarrow's ``to_numpy`` (it imports
+    pandas: seconds of a start on a busy machine): sliced, empty and null columns alike."""
+    import pyarrow as pa
+
+    from agents.recorder import _array
+
+    assert _array(pa.array(np.arange(6, dtype=np.int32)).slice(2, 3)).tolist() == [2, 3, 4]
+    assert _array(pa.array(np.array([], dtype=np.int64))).dtype == np.int64
+    got = _array(pa.array([1.5, None]))
+    assert got[0] == 1.5 and np.isnan(got[1])
+    code = ("import sys, numpy as np, pyarrow as pa\nfrom agents.recorder import _np\n"
+            "t = pa.Table.from_batches([pa.RecordBatch.from_arrays([pa.Array.from_buffers(pa.int64(), 3, "
+            "[None, pa.py_buffer(np.arange(3))])], names=['k'])] * 2)\n"
+            "assert _np(t, 'k').tolist() == [0, 1, 2, 0, 1, 2]\nprint('pandas' in sys.modules)")
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "False"
