@@ -63,7 +63,7 @@ def _links(stats: dict[str, Any], agent_ids: list[int], links: dict[str, dict[st
             c = links.get(key, {})
             arrived = int(c.get("sent", 0))
             sent = published.get(key)
-            spans = sent is not None and not {str(aid), str(int(j))} & rejoined  # both counts from round 0
+            spans = not {str(aid), str(int(j))} & rejoined  # both counts from round 0
             out[key] = {"sent": sent, "arrived": arrived, "lost_model": int(c.get("dropped", 0)),
                         "lost_transport": max(sent - arrived, 0) if spans and sent is not None else None,
                         "late": int(late) + int(c.get("late", 0)), "stalls": int(stalls),

@@ -225,10 +225,8 @@ class Monitor:
             r = len(self._rows) - 1
             with np.errstate(invalid="ignore"):
                 v = np.abs(self._est[r] - self._x[r])
-            return float(np.nanmax(v)) if not np.all(np.isnan(v)) else float("nan")
-        k = self.last_round
-        v = self.error_inf[k] if k >= 0 else np.full(1, np.nan)
-        return float(np.nanmax(v)) if not np.all(np.isnan(v)) else float("nan")  # a round of no report: nan
+            return _worst(v)
+        return _worst(self.error_inf[self.last_round]) if self.last_round >= 0 else float("nan")
 
     def metric(self, name: str) -> np.ndarray:
         """``(rounds, agents, blocks)`` array of a metric; ``error_ratio`` is ``error_2``
@@ -240,3 +238,8 @@ class Monitor:
         if name == "relative_error_2":
             return self.relative_error_2
         return {"error_2": self.error_2, "error_inf": self.error_inf}[name]
+
+
+def _worst(v: np.ndarray) -> float:
+    """The largest value of ``v`` that is not NaN (NaN when none is: a round of no report)."""
+    return float(np.nanmax(v)) if not np.all(np.isnan(v)) else float("nan")

@@ -30,7 +30,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from .columns import column, repeated_strings
+from .columns import column, repeated_strings, to_numpy
 from .monitor import Monitor
 from .rounds import regular_mask
 
@@ -118,7 +118,7 @@ def read_partial(run_dir: str | Path) -> pa.Table | None:
     # in the order (k, agent, block, position in the streams), the last of each equal key
     k, agent = _np(table, "k"), _np(table, "agent")
     blocks = table.column("block").combine_chunks()  # as an index into its distinct values
-    block = _array(pc.index_in(blocks, value_set=pc.unique(blocks)))
+    block = to_numpy(pc.index_in(blocks, value_set=pc.unique(blocks)))
     order = np.lexsort((np.arange(len(k)), block, agent, k))
     keys = np.stack([k[order], agent[order], block[order]])
     last = np.ones(len(order), dtype=bool)
@@ -129,19 +129,7 @@ def read_partial(run_dir: str | Path) -> pa.Table | None:
 
 
 def _np(table: pa.Table, name: str) -> np.ndarray:
-    """A numeric column as an array, read from its buffer: pyarrow's ``to_numpy`` imports
-    pandas, seconds of a restarted monitor's start on a busy machine."""
-    return _array(table.column(name).combine_chunks())
-
-
-def _array(a: pa.Array) -> np.ndarray:
-    if a.null_count or not (pa.types.is_integer(a.type) or pa.types.is_floating(a.type)):
-        return a.to_numpy(zero_copy_only=False)
-    dt = np.dtype(f"{'f' if pa.types.is_floating(a.type) else 'i' if pa.types.is_signed_integer(a.type) else 'u'}"
-                  f"{a.type.bit_width // 8}")
-    if len(a) == 0:
-        return np.empty(0, dtype=dt)
-    return np.frombuffer(a.buffers()[1], dtype=dt, count=len(a), offset=a.offset * dt.itemsize)
+    return to_numpy(table.column(name).combine_chunks())
 
 
 def load_into(mon: Monitor, table: pa.Table) -> None:

@@ -165,7 +165,7 @@ def test_the_readers_columns_come_from_the_arrow_buffers_without_pandas():
     pandas: seconds of a start on a busy machine): sliced, empty and null columns alike."""
     import pyarrow as pa
 
-    from agents.recorder import _array
+    from agents.columns import to_numpy as _array
 
     assert _array(pa.array(np.arange(6, dtype=np.int32)).slice(2, 3)).tolist() == [2, 3, 4]
     assert _array(pa.array(np.array([], dtype=np.int64))).dtype == np.int64
